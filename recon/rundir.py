@@ -1,0 +1,114 @@
+"""The run directory (DESIGN.md section 3): the only contract between stages.
+
+`RunDir` names every artefact's path, so no stage spells a file name itself, and appends each
+stage's resolved config to `config.yaml`.
+"""
+
+from __future__ import annotations
+
+import datetime
+from dataclasses import dataclass
+from pathlib import Path
+
+from render.cameras import CameraSet, load_cameras, save_cameras
+from render.configs import to_dict
+from render.errors import SineError
+from render.io import read_json, read_yaml, write_json, write_yaml
+
+
+@dataclass(frozen=True)
+class RunDir:
+    root: Path
+
+    def __post_init__(self):
+        object.__setattr__(self, "root", Path(self.root))
+
+    # ---- paths ----------------------------------------------------------------------------
+    @property
+    def config(self) -> Path:
+        return self.root / "config.yaml"
+
+    @property
+    def captures(self) -> Path:
+        return self.root / "captures.json"
+
+    @property
+    def cameras(self) -> Path:
+        return self.root / "cameras.json"
+
+    @property
+    def images(self) -> Path:
+        return self.root / "images"
+
+    @property
+    def masks(self) -> Path:
+        return self.root / "masks"
+
+    @property
+    def depth(self) -> Path:
+        return self.root / "depth"
+
+    @property
+    def proxy_mesh(self) -> Path:
+        return self.root / "proxy_mesh.ply"
+
+    @property
+    def recon_report(self) -> Path:
+        return self.root / "recon_report.json"
+
+    @property
+    def template(self) -> Path:
+        return self.root / "template"
+
+    @property
+    def features(self) -> Path:
+        return self.root / "features"
+
+    def edit(self, name: str) -> Path:
+        return self.root / "edits" / name
+
+    def image_path(self, name: str) -> Path:
+        return self.images / name
+
+    def mask_path(self, name: str) -> Path:
+        return self.masks / (Path(name).stem + ".png")
+
+    def depth_path(self, name: str) -> Path:
+        return self.depth / (Path(name).stem + ".npy")
+
+    # ---- content --------------------------------------------------------------------------
+    def require(self, what: str = "images") -> RunDir:
+        """Fails with a clear message if this is not a run directory with `what` in it."""
+        if not self.root.is_dir():
+            raise SineError(f"run directory {self.root} does not exist (create it with `sine ingest` or `sine recon`)")
+        if what == "images" and not self.captures.is_file():
+            raise SineError(f"{self.root} is not a run directory (no captures.json); run `sine ingest` first")
+        if what == "cameras" and not self.cameras.is_file():
+            raise SineError(f"{self.root} has no cameras.json yet; run `sine recon` first")
+        if what == "proxy_mesh" and not self.proxy_mesh.is_file():
+            raise SineError(f"{self.root} has no proxy_mesh.ply yet; run `sine recon` first")
+        return self
+
+    def load_cameras(self) -> CameraSet:
+        self.require("cameras")
+        return load_cameras(self.cameras)
+
+    def save_cameras(self, cameras: CameraSet) -> None:
+        save_cameras(self.cameras, cameras)
+
+    def load_captures(self) -> dict:
+        self.require("images")
+        return read_json(self.captures)
+
+    def save_captures(self, captures: dict) -> None:
+        write_json(self.captures, captures)
+
+    def append_config(self, stage: str, config) -> None:
+        """Appends `stage`'s resolved config (a dataclass or dict) to config.yaml."""
+        existing = read_yaml(self.config) if self.config.is_file() else None
+        existing = existing or {"stages": []}
+        entry = to_dict(config) if not isinstance(config, dict) else config
+        existing["stages"].append(
+            {"stage": stage, "time": datetime.datetime.now().isoformat(timespec="seconds"), "config": entry}
+        )
+        write_yaml(self.config, existing)

@@ -1,0 +1,47 @@
+"""The `sine` command: a thin layer over the library.
+
+Each package registers its own subcommands (`recon.commands`, `edit.commands`); this module only
+builds the parser, picks the device/thread settings and turns user errors into one readable line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from edit import commands as edit_commands
+    from recon import commands as recon_commands
+
+    parser = argparse.ArgumentParser(
+        prog="sine",
+        description=(
+            "SINE: reconstruct an object from a turntable capture, then edit it in 3D from one "
+            "edited image. Run `sine COMMAND --help` for each command's options."
+        ),
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    recon_commands.register(sub)
+    edit_commands.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    from render.errors import SineError
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        result = args.func(args)
+    except SineError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted: finished artefacts and checkpoints are kept; re-run to resume", file=sys.stderr)
+        return 130
+    return int(result or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
