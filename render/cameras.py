@@ -283,7 +283,11 @@ def cameras_from_transforms(data: dict, image_sizes: dict[str, tuple[int, int]] 
             fy = float(get("fl_y", fx))
         elif get("camera_angle_x") is not None:
             fx = 0.5 * w / np.tan(0.5 * float(get("camera_angle_x")))
-            fy = fx if get("camera_angle_y") is None else 0.5 * h / np.tan(0.5 * get("camera_angle_y"))
+            fy = (
+                fx
+                if get("camera_angle_y") is None
+                else 0.5 * h / np.tan(0.5 * get("camera_angle_y"))
+            )
         else:
             raise SineError("transforms.json: no focal length ('fl_x' or 'camera_angle_x')")
         c2w_gl = np.array(frame["transform_matrix"], dtype=np.float64).reshape(4, 4)
@@ -295,13 +299,21 @@ def cameras_from_transforms(data: dict, image_sizes: dict[str, tuple[int, int]] 
             float(get("cx", w / 2.0)),
             float(get("cy", h / 2.0)),
             camera_to_world=c2w_gl @ OPENCV_TO_OPENGL,
-            distortion=np.array([get("k1", 0.0), get("k2", 0.0), get("p1", 0.0), get("p2", 0.0)]),
+            distortion=_transforms_distortion(get),
             name=Path(path).name,
         )
         out.append((path, cam))
     if not out:
         raise SineError("transforms.json has no frames")
     return out
+
+
+def _transforms_distortion(get) -> np.ndarray:
+    """nerfstudio's k1 k2 p1 p2 (k3) -> OpenCV order [k1, k2, p1, p2(, k3)]."""
+    dist = [float(get(k, 0.0)) for k in ("k1", "k2", "p1", "p2")]
+    if float(get("k3", 0.0)) != 0.0:
+        dist.append(float(get("k3")))
+    return np.array(dist)
 
 
 def cameras_to_transforms(cameras: list[Camera], file_paths: list[str]) -> dict:
@@ -322,6 +334,7 @@ def cameras_to_transforms(cameras: list[Camera], file_paths: list[str]) -> dict:
                 "k2": d[1],
                 "p1": d[2],
                 "p2": d[3],
+                **({"k3": d[4]} if d[4] != 0.0 else {}),
                 "transform_matrix": (cam.camera_to_world @ OPENCV_TO_OPENGL).tolist(),
             }
         )
@@ -353,8 +366,10 @@ def camera_from_colmap_intrinsics(model: str, params, width: int, height: int) -
             dist[1] = p[4]
     elif model in ("PINHOLE", "OPENCV", "FULL_OPENCV"):
         fx, fy, cx, cy = p[:4]
-        if model != "PINHOLE":
+        if model == "OPENCV":
             dist[:] = p[4:8]
+        elif model == "FULL_OPENCV":  # k1 k2 p1 p2 k3 k4 k5 k6: OpenCV's 8-coefficient order
+            dist = np.array(p[4:12])
     else:
         raise SineError(f"COLMAP camera model {model} is not supported (use PINHOLE/OPENCV/RADIAL)")
     return Camera(width, height, fx, fy, cx, cy, distortion=dist)
@@ -386,10 +401,12 @@ def write_colmap_text(model_dir: str | Path, cameras: list[Camera]) -> None:
     model_dir.mkdir(parents=True, exist_ok=True)
     cam_lines, img_lines = [], []
     for i, cam in enumerate(cameras, start=1):
-        k = cam.distortion.tolist() + [0.0] * 4
+        k = [float(x) for x in cam.distortion] + [0.0] * 8
+        full = any(k[4:8])  # k3..k6 need COLMAP's FULL_OPENCV (OPENCV keeps k1 k2 p1 p2 only)
+        params = k[:8] if full else k[:4]
         cam_lines.append(
-            f"{i} OPENCV {cam.width} {cam.height} {cam.fx!r} {cam.fy!r} {cam.cx!r} {cam.cy!r} "
-            f"{k[0]!r} {k[1]!r} {k[2]!r} {k[3]!r}"
+            f"{i} {'FULL_OPENCV' if full else 'OPENCV'} {cam.width} {cam.height} "
+            + " ".join(repr(float(v)) for v in (cam.fx, cam.fy, cam.cx, cam.cy, *params))
         )
         q, t = c2w_to_colmap_pose(cam.camera_to_world)
         img_lines.append(" ".join([str(i), *(repr(float(x)) for x in (*q, *t)), str(i), cam.name]))
@@ -483,7 +500,10 @@ class CameraSet:
         return {
             "convention": "opencv",
             "up": [float(x) for x in self.up],
-            "normalization": {"scale": float(self.scale), "center": [float(x) for x in self.center]},
+            "normalization": {
+                "scale": float(self.scale),
+                "center": [float(x) for x in self.center],
+            },
             **self.extra,
             "frames": [c.to_dict() for c in self.frames],
         }
@@ -493,7 +513,9 @@ class CameraSet:
         if d.get("convention", "opencv") != "opencv":
             raise SineError("cameras.json: only the 'opencv' convention is supported")
         norm = d.get("normalization", {})
-        extra = {k: v for k, v in d.items() if k not in ("convention", "up", "normalization", "frames")}
+        extra = {
+            k: v for k, v in d.items() if k not in ("convention", "up", "normalization", "frames")
+        }
         return cls(
             frames=[Camera.from_dict(f) for f in d["frames"]],
             up=np.array(d.get("up", [0, 0, 1]), dtype=np.float64),
