@@ -1,0 +1,810 @@
+"""Capture ingestion (`sine ingest`): any supported capture -> the start of a run directory.
+
+Reads a folder of images, a video, a NeRF/nerfstudio `transforms.json`, a COLMAP model, a
+Middlebury ring (`*_par.txt`), a NeuS/IDR folder (`cameras_sphere.npz`) or images with per-image
+3x4 projection matrices, and writes (DESIGN.md section 3):
+
+- `images/<stem>.png`: working images, undistorted, resized (never upscaled) to `width`;
+- `captures.json`: source files, sizes, hashes, per-image status, the ingest config;
+- `cameras.json`: only when the input carries poses (intrinsics scaled to the working size);
+- `masks/<stem>.png`, `depth/<stem>.npy`: when the input carries them (resized with nearest).
+
+The stage is idempotent: the same source with the same options is skipped unless `force`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from recon.rundir import RunDir
+from render.cameras import (
+    Camera,
+    CameraSet,
+    camera_from_krt,
+    camera_from_projection,
+    cameras_from_neus,
+    cameras_from_transforms,
+    read_colmap_model,
+    read_middlebury_par,
+)
+from render.configs import option, to_dict
+from render.errors import SineError
+from render.io import (
+    IMAGE_SUFFIXES,
+    read_image_rgba,
+    read_json,
+    write_depth,
+    write_image,
+    write_mask,
+)
+
+FORMATS = ("auto", "images", "video", "transforms", "colmap", "middlebury", "neus", "projections")
+VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".gif")
+# Files that may sit beside the images of a capture and are not images (never an error).
+SIDECAR_SUFFIXES = (
+    ".txt", ".json", ".mat", ".npz", ".npy", ".p", ".md", ".yaml", ".yml", ".csv", ".xml",
+    ".ply", ".obj", ".mtl", ".log", ".db", ".ini", ".bin", ".pdf", ".html", ".zip",
+)  # fmt: skip
+MIN_VIEWS = 3
+
+
+@dataclass
+class IngestConfig:
+    """Options of `sine ingest`."""
+
+    width: int = option(
+        400, "working image width in pixels; images narrower than this keep their size"
+    )
+    frames: int = option(36, "for a video: number of frames to sample, evenly spaced")
+    holdout_every: int = option(
+        8, "every Nth view (the 8th, 16th, ...) gets split 'test', the others 'train'; 0 = none"
+    )
+    format: str = option("auto", "capture format (auto = detect it)", choices=FORMATS)
+    ignore_poses: bool = option(
+        False, "do not write cameras.json even if the capture carries poses (recon runs SfM)"
+    )
+    masks: Path | None = option(
+        None, "folder of foreground masks (0/255 images) matched to images by file stem; wins "
+        "over masks that come with the capture"
+    )  # fmt: skip
+    force: bool = option(False, "re-ingest even if this run already holds the same capture")
+
+
+@dataclass
+class SourceView:
+    """One view of a capture before ingestion."""
+
+    stem: str  # working file stem (images/<stem>.png)
+    source: str  # where it comes from (a path, or `video#frame=N`)
+    path: Path | None = None  # image file (None for a decoded video frame)
+    frame: np.ndarray | None = None  # decoded video frame, BGR uint8 [H, W, 3]
+    camera: Camera | None = None  # in source pixels, possibly distorted
+    mask: Path | None = None
+    depth: Path | None = None
+    depth_scale: float = 1.0  # multiplies integer depth images (nerfstudio: mm -> m)
+
+
+@dataclass
+class Capture:
+    """A capture as read from disk: its views and what the format carried."""
+
+    format: str
+    views: list[SourceView]
+    has_poses: bool
+    notes: list[str] = field(default_factory=list)
+    extra: dict = field(default_factory=dict)  # goes into cameras.json
+
+
+# ---- public API ---------------------------------------------------------------------------
+def assign_splits(n: int, holdout_every: int) -> list[str]:
+    """Split labels for n views: every `holdout_every`-th view (1-based) is 'test'; 0 = none."""
+    if holdout_every < 0 or holdout_every == 1:
+        raise SineError(
+            f"holdout_every={holdout_every} is invalid: use 0 (no held-out views) or N >= 2 "
+            "(every Nth view is held out for testing)"
+        )
+    if holdout_every == 0:
+        return ["train"] * n
+    return ["test" if (i + 1) % holdout_every == 0 else "train" for i in range(n)]
+
+
+def ingest_capture(capture: Path, run: RunDir, cfg: IngestConfig | None = None) -> dict:
+    """Reads `capture` (format detected unless cfg.format says) into `run`; returns a summary."""
+    cfg = cfg or IngestConfig()
+    t0 = time.perf_counter()
+    capture = Path(capture)
+    _check_config(cfg)
+    if not capture.exists():
+        raise SineError(
+            f"capture {capture} does not exist: pass a folder of images, a video file, a "
+            "transforms.json, a COLMAP model folder, a Middlebury or NeuS folder"
+        )
+    capture = capture.resolve()
+    source = str(capture)
+    config = _config_key(cfg)
+    previous = _previous(run, source, config)
+    if previous is not None and not cfg.force:
+        return {**summarize(previous, run), "skipped": True}
+
+    fmt = detect_format(capture) if cfg.format == "auto" else cfg.format
+    if fmt not in READERS:
+        raise SineError(f"unknown camera format '{fmt}': use one of {', '.join(FORMATS)}")
+    cap = READERS[fmt](capture, cfg)
+    if len(cap.views) < MIN_VIEWS:
+        raise SineError(
+            f"{capture} gives only {len(cap.views)} view(s) ({fmt}); a reconstruction needs at "
+            f"least {MIN_VIEWS} (better 20-150) views of the object from around it"
+        )
+    _check_unique_stems(cap.views)
+    if cfg.masks is not None:
+        _attach_user_masks(cap.views, Path(cfg.masks))
+    sizes = _probe_sizes(cap.views)
+    if not any(v.camera for v in cap.views):
+        _check_same_size(cap.views, sizes, capture)
+    use_poses = cap.has_poses and not cfg.ignore_poses
+
+    # Start over: a half-finished earlier ingest must never look complete.
+    run.root.mkdir(parents=True, exist_ok=True)
+    run.captures.unlink(missing_ok=True)
+    splits = assign_splits(len(cap.views), cfg.holdout_every)
+    records, cameras = [], []
+    for view, split, size in tqdm(
+        list(zip(cap.views, splits, sizes, strict=True)), desc="ingest", unit="view", leave=False
+    ):
+        record, cam = _ingest_view(view, size, cfg, run, split)
+        records.append(record)
+        cameras.append(cam)
+    _remove_stale(run, records)
+    if use_poses:
+        extra = {"source_format": fmt, **cap.extra}
+        run.save_cameras(CameraSet(frames=cameras, extra=extra))
+    else:
+        run.cameras.unlink(missing_ok=True)
+        if cap.has_poses:
+            cap.notes.append("poses in the capture were ignored (--ignore-poses)")
+    captures = {
+        "source": source,
+        "format": fmt,
+        "working_width": max(r["width"] for r in records),
+        "poses": use_poses,
+        "config": config,
+        "notes": cap.notes,
+        "images": records,
+    }
+    run.save_captures(captures)
+    return {**summarize(captures, run), "skipped": False, "seconds": time.perf_counter() - t0}
+
+
+def summarize(captures: dict, run: RunDir) -> dict:
+    """A short summary of an ingested capture (what the CLI prints)."""
+    images = captures["images"]
+    work = sorted({(r["width"], r["height"]) for r in images})
+    src = sorted({(r["source_width"], r["source_height"]) for r in images})
+    return {
+        "run": str(run.root),
+        "source": captures["source"],
+        "format": captures["format"],
+        "views": len(images),
+        "train": sum(r["split"] == "train" for r in images),
+        "test": sum(r["split"] == "test" for r in images),
+        "poses": bool(captures.get("poses")),
+        "masks": sum(bool(r.get("mask")) for r in images),
+        "depth": sum(bool(r.get("depth")) for r in images),
+        "undistorted": sum(bool(r.get("undistorted")) for r in images),
+        "working_size": "mixed" if len(work) > 1 else f"{work[0][0]}x{work[0][1]}",
+        "source_size": "mixed" if len(src) > 1 else f"{src[0][0]}x{src[0][1]}",
+        "notes": list(captures.get("notes", [])),
+    }
+
+
+def detect_format(capture: Path) -> str:
+    """The format of a capture path (see FORMATS); raises SineError when none fits."""
+    capture = Path(capture)
+    if capture.is_file():
+        suffix = capture.suffix.lower()
+        if suffix == ".json":
+            return "transforms"
+        if capture.name == "cameras_sphere.npz":
+            return "neus"
+        if suffix in IMAGE_SUFFIXES:
+            raise SineError(
+                f"{capture} is a single image; pass the folder that holds all the views"
+            )
+        if suffix in SIDECAR_SUFFIXES:
+            raise SineError(
+                f"unknown camera format: {capture} is neither a video nor a transforms.json; "
+                "pass the capture folder (images + cameras) instead"
+            )
+        return "video"
+    if not capture.is_dir():
+        raise SineError(f"{capture} is neither a file nor a folder")
+    if (capture / "transforms.json").is_file():
+        return "transforms"
+    if (capture / "cameras_sphere.npz").is_file():
+        return "neus"
+    if _find_colmap_model(capture) is not None:
+        return "colmap"
+    if sorted(capture.glob("*_par.txt")):
+        return "middlebury"
+    folder = _image_folder(capture)
+    if folder is not None and any(_projection_file(p) for p in _image_files(folder)):
+        return "projections"
+    split_files = sorted(p.name for p in capture.glob("transforms_*.json"))
+    if split_files:
+        raise SineError(
+            f"{capture} holds {', '.join(split_files)} but no transforms.json: pass the file to "
+            "ingest (e.g. CAPTURE/transforms_train.json)"
+        )
+    if folder is not None:
+        return "images"
+    entries = sorted(p.name for p in capture.iterdir() if not p.name.startswith("."))
+    if not entries:
+        raise SineError(f"{capture} is empty: put the photos of the capture in it")
+    raise SineError(
+        f"no images found in {capture} (it holds: {_short_list(entries)}); expected images "
+        f"({', '.join(IMAGE_SUFFIXES)}), optionally in an images/ subfolder, or a known camera "
+        "format (transforms.json, COLMAP sparse/0, *_par.txt, cameras_sphere.npz)"
+    )
+
+
+# ---- format readers -----------------------------------------------------------------------
+def _read_images(capture: Path, cfg: IngestConfig) -> Capture:
+    if not capture.is_dir():
+        raise SineError(f"format 'images' needs a folder of images; {capture} is not a folder")
+    folder = _image_folder(capture)
+    if folder is None:
+        detect_format(capture)  # raises the detailed "empty / no images" message
+        raise SineError(f"no images found in {capture}")
+    files = _image_files(folder)
+    views = [SourceView(p.stem, str(p), path=p) for p in files]
+    notes = []
+    ignored = sorted(p.name for p in capture.glob("*.mat"))
+    if ignored:
+        notes.append(f"ignored {', '.join(ignored)} (not a metric calibration we can use)")
+    return Capture("images", views, has_poses=False, notes=notes)
+
+
+def _read_video(capture: Path, cfg: IngestConfig) -> Capture:
+    if not capture.is_file():
+        raise SineError(f"format 'video' needs a video file; {capture} is not a file")
+    cap = cv2.VideoCapture(str(capture))
+    if not cap.isOpened():
+        raise SineError(
+            f"cannot open video {capture}: OpenCV has no decoder for it or the file is damaged; "
+            "convert it to MP4 (H.264) or extract the frames to a folder of images"
+        )
+    try:
+        count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        if count <= 0:  # some containers do not know: count by decoding
+            count = 0
+            while cap.grab():
+                count += 1
+            cap.release()
+            cap = cv2.VideoCapture(str(capture))
+        if count == 0:
+            raise SineError(f"video {capture} has no frames that OpenCV can decode")
+        wanted = np.unique(np.round(np.linspace(0, count - 1, min(cfg.frames, count))).astype(int))
+        wanted_set = set(wanted.tolist())
+        views, index = [], 0
+        while len(views) < len(wanted) and cap.grab():
+            if index in wanted_set:
+                ok, frame = cap.retrieve()
+                if ok and frame is not None:
+                    views.append(
+                        SourceView(
+                            f"{capture.stem}_{index:05d}",
+                            f"{capture}#frame={index}",
+                            frame=np.ascontiguousarray(frame),
+                        )
+                    )
+            index += 1
+    finally:
+        cap.release()
+    notes = [f"sampled {len(views)} of {count} frames evenly"]
+    return Capture("video", views, has_poses=False, notes=notes)
+
+
+def _read_transforms(capture: Path, cfg: IngestConfig) -> Capture:
+    path = capture / "transforms.json" if capture.is_dir() else capture
+    if not path.is_file():
+        raise SineError(f"format 'transforms' needs a transforms.json; {path} does not exist")
+    data = read_json(path)
+    if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
+        raise SineError(
+            f"unknown camera format: {path} is JSON but not a NeRF/nerfstudio transforms.json "
+            "(no 'frames' list)"
+        )
+    base = path.parent
+    files: dict[str, Path] = {}
+    missing = []
+    for frame in data["frames"]:
+        if "file_path" not in frame:
+            raise SineError(f"{path}: every frame needs a 'file_path'")
+        found = _resolve_image(base, frame["file_path"])
+        if found is None:
+            missing.append(frame["file_path"])
+        else:
+            files[frame["file_path"]] = found
+    if missing:
+        raise SineError(
+            f"{path} refers to images that do not exist: {_short_list(missing)} "
+            f"(paths are relative to {base})"
+        )
+    sizes = _probe_files(list(files.values()))
+    image_sizes = {fp: sizes[p] for fp, p in files.items()}
+    cams = cameras_from_transforms(data, image_sizes)
+    depth_scale = float(data.get("depth_unit_scale_factor", 1e-3))
+    views = []
+    for frame, (fp, cam) in zip(data["frames"], cams, strict=True):
+        view = SourceView(files[fp].stem, str(files[fp]), path=files[fp], camera=cam)
+        for key, attr in (("mask_path", "mask"), ("depth_file_path", "depth")):
+            if frame.get(key):
+                p = base / frame[key]
+                if not p.is_file():
+                    raise SineError(f"{path}: {key} {frame[key]} of {fp} does not exist")
+                setattr(view, attr, p)
+        view.depth_scale = depth_scale
+        views.append(view)
+    return Capture("transforms", views, has_poses=True)
+
+
+def _read_colmap(capture: Path, cfg: IngestConfig) -> Capture:
+    model = _find_colmap_model(capture)
+    if model is None:
+        raise SineError(
+            f"no COLMAP model in {capture}: expected cameras.bin/txt + images.bin/txt in it or "
+            "in sparse/0"
+        )
+    cams = read_colmap_model(model)
+    if not cams:
+        raise SineError(f"the COLMAP model in {model} has no registered images")
+    image_dir = None
+    for cand in (model, model.parent, model.parent.parent, model.parent.parent.parent):
+        for d in (cand / "images", cand):
+            if (d / cams[0][0]).is_file():
+                image_dir = d
+                break
+        if image_dir is not None:
+            break
+    if image_dir is None:
+        raise SineError(
+            f"cannot find the images of the COLMAP model {model} (looked for {cams[0][0]} in an "
+            "images/ folder beside or above it)"
+        )
+    missing = [n for n, _ in cams if not (image_dir / n).is_file()]
+    if missing:
+        raise SineError(
+            f"images of the COLMAP model missing in {image_dir}: {_short_list(missing)}"
+        )
+    views = [
+        SourceView(Path(n).stem, str(image_dir / n), path=image_dir / n, camera=c) for n, c in cams
+    ]
+    notes = [f"COLMAP model {model}"]
+    unregistered = len(_image_files(image_dir, strict=False)) - len(cams)
+    if unregistered > 0:
+        notes.append(f"{unregistered} image(s) in {image_dir} have no pose in the model: skipped")
+    return Capture("colmap", views, has_poses=True, notes=notes)
+
+
+def _read_middlebury(capture: Path, cfg: IngestConfig) -> Capture:
+    pars = sorted(capture.glob("*_par.txt")) if capture.is_dir() else [capture]
+    if not pars:
+        raise SineError(f"format 'middlebury' needs a *_par.txt in {capture}")
+    rows = read_middlebury_par(pars[0])
+    base = pars[0].parent
+    missing = [name for name, *_ in rows if not (base / name).is_file()]
+    if missing:
+        raise SineError(f"{pars[0]} lists images missing in {base}: {_short_list(missing)}")
+    sizes = _probe_files([base / name for name, *_ in rows])
+    views = []
+    for name, K, R, t in rows:
+        w, h = sizes[base / name]
+        cam = camera_from_krt(K, R, t, w, h, name)
+        views.append(SourceView(Path(name).stem, str(base / name), path=base / name, camera=cam))
+    notes = [f"cameras from {pars[0].name}"] + (
+        [f"ignored {', '.join(p.name for p in pars[1:])}"] if len(pars) > 1 else []
+    )
+    return Capture("middlebury", views, has_poses=True, notes=notes)
+
+
+def _read_neus(capture: Path, cfg: IngestConfig) -> Capture:
+    root = capture.parent if capture.is_file() else capture
+    npz_path = root / "cameras_sphere.npz"
+    if not npz_path.is_file():
+        raise SineError(f"format 'neus' needs {npz_path}")
+    image_dir = next((root / d for d in ("image", "images") if (root / d).is_dir()), None)
+    if image_dir is None:
+        raise SineError(f"NeuS/IDR capture {root} has no image/ (or images/) folder")
+    files = _image_files(image_dir)
+    sizes = _probe_files(files)
+    with np.load(npz_path) as npz:
+        cams, scale_mat = cameras_from_neus(npz, [sizes[p] for p in files])
+    mask_dir = next((root / d for d in ("mask", "masks") if (root / d).is_dir()), None)
+    masks = _image_files(mask_dir) if mask_dir else []
+    by_stem = {p.stem: p for p in masks}
+    views = []
+    for i, (p, cam) in enumerate(zip(files, cams, strict=True)):
+        mask = by_stem.get(p.stem) or (masks[i] if len(masks) == len(files) else None)
+        views.append(SourceView(p.stem, str(p), path=p, camera=cam.replace(name=p.name), mask=mask))
+    r, c = float(scale_mat[0, 0]), scale_mat[:3, 3]
+    extra = {"source_normalization": {"scale": 1.0 / r, "center": [float(x) for x in c]}}
+    return Capture("neus", views, has_poses=True, extra=extra)
+
+
+def _read_projections(capture: Path, cfg: IngestConfig) -> Capture:
+    folder = _image_folder(capture) if capture.is_dir() else None
+    if folder is None:
+        raise SineError(f"format 'projections' needs a folder of images; none in {capture}")
+    files = _image_files(folder)
+    pfiles = {p: _projection_file(p) for p in files}
+    missing = [p.name for p, q in pfiles.items() if q is None]
+    if missing:
+        raise SineError(
+            f"no projection matrix file (<stem>_P.txt or <stem>.P) for {_short_list(missing)} "
+            f"in {folder}: give one per image, or remove the others to ingest images only"
+        )
+    sizes = _probe_files(files)
+    views = []
+    for p in files:
+        P = _read_projection_matrix(pfiles[p])
+        cam = camera_from_projection(P, *sizes[p], name=p.name)
+        views.append(SourceView(p.stem, str(p), path=p, camera=cam))
+    return Capture("projections", views, has_poses=True)
+
+
+READERS = {
+    "images": _read_images,
+    "video": _read_video,
+    "transforms": _read_transforms,
+    "colmap": _read_colmap,
+    "middlebury": _read_middlebury,
+    "neus": _read_neus,
+    "projections": _read_projections,
+}
+
+
+# ---- writing one view ---------------------------------------------------------------------
+def _ingest_view(
+    view: SourceView, size: tuple[int, int], cfg: IngestConfig, run: RunDir, split: str
+) -> tuple[dict, Camera | None]:
+    if view.frame is not None:
+        rgb = view.frame[..., ::-1].astype(np.float32) / 255.0  # [H, W, 3]
+        alpha, digest = None, hashlib.sha256(view.frame.tobytes()).hexdigest()
+    else:
+        rgb, alpha = read_image_rgba(view.path)
+        digest = _sha256(view.path)
+    h, w = rgb.shape[:2]
+    cam = _fit_camera(view.camera, w, h, view.source) if view.camera is not None else None
+    mask = _load_mask(view.mask, w, h) if view.mask is not None else None
+    if mask is None and alpha is not None and (alpha < 0.5).any():
+        mask = alpha >= 0.5  # an RGBA capture (e.g. NeRF synthetic): alpha is the foreground
+    depth = _load_depth(view, w, h) if view.depth is not None else None
+
+    undistorted = cam is not None and bool(np.any(cam.distortion != 0))
+    if undistorted:
+        K_cv = cam.K.copy()  # OpenCV puts pixel centres at integers, we at +0.5
+        K_cv[:2, 2] -= 0.5
+        dist = cam.distortion
+        rgb = cv2.undistort(rgb, K_cv, dist, None, K_cv)
+        maps = cv2.initUndistortRectifyMap(K_cv, dist, None, K_cv, (w, h), cv2.CV_32FC1)
+        if mask is not None:
+            mask = cv2.remap(mask.astype(np.uint8), *maps, cv2.INTER_NEAREST) > 0
+        if depth is not None:
+            depth = cv2.remap(depth, *maps, cv2.INTER_NEAREST)
+        cam = cam.replace(distortion=np.zeros(4))
+
+    W = min(cfg.width, w)
+    H = max(1, round(h * W / w))
+    if (W, H) != (w, h):
+        rgb = cv2.resize(rgb, (W, H), interpolation=cv2.INTER_AREA)
+        if mask is not None:
+            mask = _resize_nearest(mask.astype(np.uint8), W, H) > 0
+        if depth is not None:
+            depth = _resize_nearest(depth, W, H)
+    name = f"{view.stem}.png"
+    write_image(run.image_path(name), rgb)
+    if mask is not None:
+        write_mask(run.mask_path(name), mask)
+    if depth is not None:
+        write_depth(run.depth_path(name), depth)
+    if cam is not None:
+        cam = cam.resized(W, H).replace(name=name, split=split)
+    record = {
+        "name": name,
+        "source": view.source,
+        "source_width": w,
+        "source_height": h,
+        "width": W,
+        "height": H,
+        "sha256": digest,
+        "status": "ok",
+        "split": split,
+        "mask": mask is not None,
+        "depth": depth is not None,
+        "undistorted": undistorted,
+    }
+    return record, cam
+
+
+def _fit_camera(cam: Camera, w: int, h: int, source: str) -> Camera:
+    """The camera for an image of (w, h): equal, or the same aspect ratio scaled."""
+    if (cam.width, cam.height) == (w, h):
+        return cam
+    if abs(cam.width / cam.height - w / h) < 0.01 * (w / h):
+        return cam.resized(w, h)
+    raise SineError(
+        f"{source} is {w}x{h} but its camera says {cam.width}x{cam.height} (different aspect "
+        "ratio): the intrinsics do not belong to this image"
+    )
+
+
+def _load_mask(path: Path, w: int, h: int) -> np.ndarray:
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise SineError(f"cannot read mask {path} (corrupt or not an image)")
+    if raw.ndim == 3:
+        raw = raw[..., 3] if raw.shape[2] == 4 else raw.max(axis=2)
+    mask = raw > (32767 if raw.dtype == np.uint16 else 127)
+    return _fit_plane(mask.astype(np.uint8), w, h, path) > 0
+
+
+def _load_depth(view: SourceView, w: int, h: int) -> np.ndarray:
+    path = view.depth
+    if path.suffix.lower() == ".npy":
+        depth = np.load(path).astype(np.float32)
+    else:
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise SineError(f"cannot read depth map {path} (use .npy float32 or a 16-bit PNG)")
+        if raw.ndim == 3:
+            raw = raw[..., 0]
+        scale = view.depth_scale if np.issubdtype(raw.dtype, np.integer) else 1.0
+        depth = raw.astype(np.float32) * np.float32(scale)
+    if depth.ndim != 2:
+        raise SineError(f"depth map {path} has shape {depth.shape}; expected [H, W]")
+    return _fit_plane(depth, w, h, path)
+
+
+def _fit_plane(array: np.ndarray, w: int, h: int, path: Path) -> np.ndarray:
+    """A mask/depth [h', w'] brought to the image size (nearest) if the aspect ratio matches."""
+    hh, ww = array.shape[:2]
+    if (ww, hh) == (w, h):
+        return array
+    if abs(ww / hh - w / h) > 0.01 * (w / h):
+        raise SineError(f"{path} is {ww}x{hh} but its image is {w}x{h}")
+    return _resize_nearest(array, w, h)
+
+
+def _resize_nearest(array: np.ndarray, w: int, h: int) -> np.ndarray:
+    # INTER_NEAREST_EXACT samples pixel centres like INTER_AREA does (plain NEAREST is shifted).
+    return cv2.resize(array, (w, h), interpolation=cv2.INTER_NEAREST_EXACT)
+
+
+# ---- checks and helpers -------------------------------------------------------------------
+def _check_config(cfg: IngestConfig) -> None:
+    if cfg.width < 8:
+        raise SineError(f"--width {cfg.width} is too small; use a working width of 8 px or more")
+    if cfg.frames < MIN_VIEWS:
+        raise SineError(f"--frames {cfg.frames}: sample at least {MIN_VIEWS} frames of a video")
+    assign_splits(0, cfg.holdout_every)  # validates holdout_every
+    if cfg.format not in FORMATS:
+        raise SineError(f"unknown camera format '{cfg.format}': use one of {', '.join(FORMATS)}")
+
+
+def _config_key(cfg: IngestConfig) -> dict:
+    config = to_dict(cfg)
+    config.pop("force", None)
+    if cfg.masks is not None:
+        config["masks"] = str(Path(cfg.masks).resolve())
+    return config
+
+
+def _previous(run: RunDir, source: str, config: dict) -> dict | None:
+    """The existing captures.json if it records this very ingest and its images exist."""
+    if not run.captures.is_file():
+        return None
+    try:
+        old = read_json(run.captures)
+    except SineError:
+        return None
+    if old.get("source") != source or old.get("config") != config:
+        return None
+    if not all(run.image_path(r["name"]).is_file() for r in old.get("images", [])):
+        return None
+    return old
+
+
+def _image_files(folder: Path, strict: bool = True) -> list[Path]:
+    """Sorted image files of a folder; with `strict`, other non-sidecar files are an error."""
+    images, others = [], []
+    for p in sorted(folder.iterdir()):
+        if p.name.startswith(".") or not p.is_file():
+            continue
+        suffix = p.suffix.lower()
+        if suffix in IMAGE_SUFFIXES:
+            images.append(p)
+        elif suffix not in SIDECAR_SUFFIXES and suffix not in VIDEO_SUFFIXES:
+            others.append(p.name)
+    if strict and others:
+        raise SineError(
+            f"{folder} holds files that are not images OpenCV can read: {_short_list(others)}; "
+            f"convert them to PNG/JPEG or move them out of the capture"
+        )
+    return images
+
+
+def _image_folder(capture: Path) -> Path | None:
+    """The folder holding a capture's images: the capture itself or its images/ subfolder."""
+    for folder in (capture, capture / "images", capture / "image"):
+        if folder.is_dir() and _image_files(folder, strict=False):
+            return folder
+    return None
+
+
+def _find_colmap_model(root: Path) -> Path | None:
+    def is_model(d: Path) -> bool:
+        return any(
+            (d / f"cameras{ext}").is_file() and (d / f"images{ext}").is_file()
+            for ext in (".bin", ".txt")
+        )
+
+    candidates = [root, root / "sparse" / "0", root / "sparse", root / "colmap" / "sparse" / "0"]
+    if (root / "sparse").is_dir():
+        candidates += sorted(d for d in (root / "sparse").iterdir() if d.is_dir())
+    return next((d for d in candidates if d.is_dir() and is_model(d)), None)
+
+
+def _projection_file(image: Path) -> Path | None:
+    for cand in (f"{image.stem}_P.txt", f"{image.stem}.P", f"{image.name}.P", f"{image.stem}.p"):
+        if (image.parent / cand).is_file():
+            return image.parent / cand
+    return None
+
+
+def _read_projection_matrix(path: Path) -> np.ndarray:
+    values = []
+    for token in path.read_text().split():
+        try:
+            values.append(float(token))
+        except ValueError:
+            continue  # headers such as "CONTOUR"
+    if len(values) != 12:
+        raise SineError(
+            f"{path}: expected the 12 numbers of a 3x4 projection matrix, found {len(values)}"
+        )
+    return np.array(values).reshape(3, 4)
+
+
+def _resolve_image(base: Path, file_path: str) -> Path | None:
+    p = base / file_path
+    if p.is_file():
+        return p
+    if not p.suffix or p.suffix.lower() not in IMAGE_SUFFIXES:  # NeRF blender: "./train/r_0"
+        for suffix in (".png", *IMAGE_SUFFIXES):
+            q = p.with_name(p.name + suffix)
+            if q.is_file():
+                return q
+    return None
+
+
+def _probe_files(paths: list[Path]) -> dict[Path, tuple[int, int]]:
+    """(width, height) of each image from its header; lists every unreadable file at once."""
+    from PIL import Image
+
+    sizes, bad = {}, []
+    for p in paths:
+        try:
+            with Image.open(p) as im:
+                sizes[p] = im.size
+                continue
+        except Exception:
+            pass
+        raw = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            bad.append(p.name)
+        else:
+            sizes[p] = (raw.shape[1], raw.shape[0])
+    if bad:
+        raise SineError(
+            f"cannot read these files as images (corrupt, empty or not images): "
+            f"{_short_list(bad)}; fix or remove them"
+        )
+    return sizes
+
+
+def _probe_sizes(views: list[SourceView]) -> list[tuple[int, int]]:
+    sizes = _probe_files([v.path for v in views if v.path is not None])
+    return [
+        sizes[v.path] if v.path is not None else (v.frame.shape[1], v.frame.shape[0]) for v in views
+    ]
+
+
+def _check_same_size(views, sizes, capture: Path) -> None:
+    counts = Counter(sizes)
+    if len(counts) <= 1:
+        return
+    parts = []
+    for (w, h), n in counts.most_common():
+        example = next(v.source for v, s in zip(views, sizes, strict=True) if s == (w, h))
+        parts.append(f"{w}x{h}: {n} image(s), e.g. {Path(example).name}")
+    raise SineError(
+        f"images of mixed sizes in {capture} ({'; '.join(parts)}) and no per-image intrinsics: "
+        "one capture needs one camera. Resize/crop them to one size, remove the odd ones, or give "
+        "per-image cameras (transforms.json, COLMAP)"
+    )
+
+
+def _check_unique_stems(views: list[SourceView]) -> None:
+    counts = Counter(v.stem for v in views)
+    if all(n == 1 for n in counts.values()):
+        return
+    # e.g. train/r_0 and test/r_0: prefix the parent folder
+    for v in views:
+        if counts[v.stem] > 1 and v.path is not None:
+            v.stem = f"{v.path.parent.name}_{v.stem}"
+    dup = [s for s, n in Counter(v.stem for v in views).items() if n > 1]
+    if dup:
+        raise SineError(
+            f"several images share the file stem {_short_list(dup)} (e.g. a.jpg and a.png); "
+            "rename them so that every view has its own name"
+        )
+
+
+def _attach_user_masks(views: list[SourceView], folder: Path) -> None:
+    if not folder.is_dir():
+        raise SineError(f"--masks {folder} is not a folder")
+    by_stem: dict[str, Path] = {}
+    for p in _image_files(folder, strict=False):
+        by_stem.setdefault(p.stem, p)
+    missing = []
+    for v in views:
+        src_stem = Path(v.source.split("#")[0]).stem if v.path is None else v.path.stem
+        mask = by_stem.get(v.stem) or by_stem.get(src_stem)
+        if mask is None and v.path is not None:
+            mask = by_stem.get(v.path.name)  # masks named like "img.jpg.png"
+        if mask is None:
+            missing.append(v.stem)
+        v.mask = mask
+    if missing:
+        raise SineError(
+            f"--masks {folder} has no mask for {len(missing)} of {len(views)} images: "
+            f"{_short_list(missing)} (masks are matched by file stem, e.g. img_001.jpg -> "
+            "img_001.png); add them or leave --masks out to compute masks automatically"
+        )
+
+
+def _remove_stale(run: RunDir, records: list[dict]) -> None:
+    """Drops working files of an earlier ingest that this one did not write."""
+    written = set()
+    for r in records:
+        written.add(run.image_path(r["name"]))
+        if r["mask"]:
+            written.add(run.mask_path(r["name"]))
+        if r["depth"]:
+            written.add(run.depth_path(r["name"]))
+    for folder in (run.images, run.masks, run.depth):
+        if folder.is_dir():
+            for p in folder.iterdir():
+                if p.is_file() and p not in written:
+                    p.unlink()
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _short_list(items, n: int = 8) -> str:
+    items = [str(x) for x in items]
+    return ", ".join(items[:n]) + (f" and {len(items) - n} more" if len(items) > n else "")
