@@ -1,0 +1,96 @@
+"""Semantic K-means masks on synthetic feature maps with known clusters."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from edit.semantic_masks import (
+    SemanticMaskConfig,
+    SemanticMasks,
+    fit_region_centres,
+    nearest_centre_distance,
+)
+from render.errors import SineError
+
+C = 12
+
+
+def _basis(k: int) -> torch.Tensor:
+    e = torch.zeros(C)
+    e[k] = 1.0
+    return e
+
+
+def _feature_map(labels: np.ndarray, seed: int, noise: float = 0.02, scale: float = 3.0):
+    """Features [C, H, W]: pixel with label k gets scale * (e_k + noise); label -1 is zero+noise."""
+    g = torch.Generator().manual_seed(seed)
+    h, w = labels.shape
+    f = torch.randn(C, h, w, generator=g) * noise
+    for k in np.unique(labels):
+        if k >= 0:
+            f[:, torch.from_numpy(labels == k)] += _basis(int(k))[:, None]
+    return f * scale  # the scale must not matter: distances use normalised features
+
+
+def test_mask_in_another_view_is_exactly_the_painted_part():
+    # Editing view: part 0 on the left, part 1 top right, part 2 bottom right.
+    lab = np.zeros((40, 48), int)
+    lab[:, 24:] = 1
+    lab[20:, 24:] = 2
+    feats = _feature_map(lab, seed=0)
+    painted = np.zeros_like(lab, bool)
+    painted[5:15, 4:12] = True  # a small stroke inside part 0 only
+    masks = SemanticMasks(feats, painted, SemanticMaskConfig(num_samples=300, seed=1))
+    assert masks.centres.shape == (15, C)
+    # All centres are (up to noise) the direction of part 0.
+    assert (masks.centres[:, 0] > 0.99).all()
+    assert masks.mask(feats).numpy().tolist() == (lab == 0).tolist()
+
+    # Another view: parts moved, a new part 3 and empty background (-1).
+    lab2 = np.full((30, 30), -1)
+    lab2[2:12, 15:28] = 0
+    lab2[15:25, 3:10] = 1
+    lab2[15:25, 12:20] = 3
+    lab2[26:29, :] = 0
+    got = masks.mask(_feature_map(lab2, seed=5)).numpy()
+    assert got.tolist() == (lab2 == 0).tolist()
+
+
+def test_threshold_on_mixed_features():
+    # Features mixing part 0 and part 1: normalised distance to e_0 is sqrt(2 - 2 cos).
+    centres = fit_region_centres(
+        _feature_map(np.zeros((10, 10), int), seed=0, noise=0.0),
+        np.ones((10, 10), bool),
+        SemanticMaskConfig(num_samples=50),
+    )
+    assert centres.shape == (1, C)  # one distinct feature: K drops to 1
+    mixes = torch.stack(
+        [
+            0.95 * _basis(0) + 0.3122 * _basis(1),  # cos 0.95  -> d 0.316: editable
+            0.85 * _basis(0) + 0.5268 * _basis(1),  # cos 0.85  -> d 0.548: background
+            0.9 * _basis(0) + 0.4359 * _basis(1),  # cos 0.9   -> d 0.447: editable
+            _basis(1),  # cos 0 -> d 1.414
+        ],
+        dim=1,
+    )[:, None]  # [C, 1, 4]
+    d = nearest_centre_distance(mixes * 7.0, centres)[0]
+    torch.testing.assert_close(d, torch.tensor([0.3162, 0.5477, 0.4472, 1.4142]), atol=2e-3, rtol=0)
+    masks = SemanticMasks(torch.zeros(C, 1, 1) + _basis(0)[:, None, None], np.ones((1, 1), bool))
+    assert masks.mask(mixes).tolist() == [[True, False, True, False]]
+
+
+def test_seeded_and_region_resized():
+    lab = np.zeros((20, 20), int)
+    lab[:, 10:] = 1
+    feats = _feature_map(lab, seed=3, noise=0.05)
+    region = np.zeros((40, 40), bool)  # painted at twice the feature resolution
+    region[:, :20] = True
+    cfg = SemanticMaskConfig(num_samples=200, num_clusters=4)
+    a = fit_region_centres(feats, region, cfg)
+    b = fit_region_centres(feats, region, cfg)
+    torch.testing.assert_close(a, b)
+    assert (a[:, 0] > 0.9).all()
+    with pytest.raises(SineError, match="empty"):
+        fit_region_centres(feats, np.zeros((20, 20), bool), cfg)
