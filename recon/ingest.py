@@ -214,6 +214,8 @@ def detect_format(capture: Path) -> str:
             return "transforms"
         if capture.name == "cameras_sphere.npz":
             return "neus"
+        if capture.name.endswith("_par.txt"):
+            return "middlebury"
         if suffix in IMAGE_SUFFIXES:
             raise SineError(
                 f"{capture} is a single image; pass the folder that holds all the views"

@@ -329,6 +329,8 @@ def test_middlebury_neus_and_projection_formats(tmp_path):
         for cam, got in zip(cams, frames, strict=True):
             assert_camera_close(got, cam.resized(32, 24), atol=1e-6)
     assert summary["masks"] == 0
+    assert detect_format(mid / "obj_par.txt") == "middlebury"
+    assert detect_format(neus / "cameras_sphere.npz") == "neus"
     neus_cams = RunDir(tmp_path / "run_neus").load_cameras()
     norm = neus_cams.extra["source_normalization"]
     assert norm["scale"] == pytest.approx(2.0) and norm["center"] == pytest.approx([0.1, 0.2, 0.3])
