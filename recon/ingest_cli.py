@@ -23,7 +23,6 @@ def add_parser(sub) -> None:
             "3x4 projection matrices (<stem>_P.txt or <stem>.P). Running it again with the same "
             "capture and options does nothing (use --force)."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     parser.add_argument("capture", type=Path, metavar="CAPTURE", help="the capture to read")
     parser.add_argument(
