@@ -296,3 +296,25 @@ def test_cli_help_and_exit_code(tmp_path, capsys):
     )  # fmt: skip
     assert code == 0 and (tmp_path / "fig" / "images" / "r_002.png").is_file()
     assert (tmp_path / "fig" / "config.yaml").is_file()
+
+
+def test_material_groups_become_parts(tmp_path):
+    (tmp_path / "a.mtl").write_text("newmtl red\nKd 1 0 0\nnewmtl blue\nKd 0 0 1\n")
+    (tmp_path / "a.obj").write_text(
+        "mtllib a.mtl\nv -1 -1 0\nv 1 -1 0\nv -1 1 0\nv 1 1 0\nv 0 0 1.5\n"
+        "usemtl red\nf 1 2 5\nf 2 4 5\nusemtl blue\nf 4 3 5\nf 3 1 5\nf 1 3 2\nf 2 3 4\n"
+    )  # a square pyramid: two red sides, two blue sides and a blue base
+    out = tmp_path / "out"
+    synthesize(
+        SynthConfig(out=out, mesh=tmp_path / "a.obj", up_axis="z", views=4, width=48, height=40),
+        progress=False,
+    )
+    parts = {v: int(k) for k, v in json.loads((out / "parts.json").read_text()).items()}
+    assert set(parts) == {"red", "blue"}
+    for i in range(4):
+        labels = read_label_map(out / "labels" / f"r_{i:03d}.png")
+        image = read_image(out / "images" / f"r_{i:03d}.png")
+        red, blue = labels == parts["red"], labels == parts["blue"]
+        assert red.any() and blue.any()
+        assert np.all(image[red][:, 0] > image[red][:, 2])
+        assert np.all(image[blue][:, 2] > image[blue][:, 0])
