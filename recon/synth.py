@@ -678,7 +678,8 @@ class SynthConfig:
     )
     fov: float = option(40.0, "field of view in degrees across the shorter image side")
     fill: float = option(
-        0.7, "fraction of the shorter image side the object's bounding sphere spans"
+        0.7,
+        "fraction of the half-frame (from the image centre) the object spans in its widest view",
     )
     background: list[float] = option([1.0, 1.0, 1.0], "background colour R G B in [0, 1]")
     up_axis: str = option(
@@ -689,7 +690,7 @@ class SynthConfig:
     parts_plane: list[float] | None = option(
         None,
         "split a single-material mesh into parts by the plane NX NY NZ D (n.x = D, run units): "
-        "label 1 below, 2 above; default: horizontal plane through the middle",
+        "label 1 below, 2 above; if omitted, the horizontal plane through the middle",
     )
     ambient: float = option(
         0.35, "ambient light fraction (the rest is the fixed Lambertian lights)"
@@ -700,14 +701,15 @@ class SynthConfig:
     edit_plane: list[float] | None = option(
         None,
         "geometric edit: stretch the part above the plane NX NY NZ D (run units) along its normal; "
-        "default: the object's suggestion (procedural) or the horizontal plane z = 0",
+        "if omitted, the object's suggestion (procedural) or the horizontal plane z = 0",
     )
     edit_scale: float = option(1.5, "geometric edit: stretch factor along the plane normal")
     edit_falloff: float = option(
         0.1, "geometric edit: width (run units) over which the stretch ramps up above the plane"
     )
     edit_part: int | None = option(
-        None, "texture edit: part id to recolour (default: 2 'above' for meshes, the body for toys)"
+        None,
+        "texture edit: part id to recolour; if omitted, 2 (above) for meshes, the main part of a toy",
     )
     edit_hue: float = option(120.0, "texture edit: hue rotation in degrees")
     edit_color: list[float] | None = option(
