@@ -492,9 +492,11 @@ class CameraSet:
 
     frames: list[Camera]
     up: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
-    scale: float = 1.0  # x_run = scale * (x_in - center)
+    scale: float = 1.0  # x_run = scale * rotation @ (x_in - center)
     center: np.ndarray = field(default_factory=lambda: np.zeros(3))
     extra: dict = field(default_factory=dict)
+    # [3, 3]; stored as normalization["rotation"] (row-major nested lists) when not identity.
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
 
     def to_dict(self) -> dict:
         return {
@@ -507,6 +509,13 @@ class CameraSet:
             **self.extra,
             "frames": [c.to_dict() for c in self.frames],
         }
+
+    def _normalization_dict(self) -> dict:
+        norm = {"scale": float(self.scale), "center": [float(x) for x in self.center]}
+        rotation = np.asarray(self.rotation, dtype=np.float64).reshape(3, 3)
+        if not np.allclose(rotation, np.eye(3)):
+            norm["rotation"] = [[float(x) for x in row] for row in rotation]
+        return norm
 
     @classmethod
     def from_dict(cls, d: dict) -> CameraSet:
@@ -522,6 +531,7 @@ class CameraSet:
             scale=float(norm.get("scale", 1.0)),
             center=np.array(norm.get("center", [0, 0, 0]), dtype=np.float64),
             extra=extra,
+            rotation=np.array(norm.get("rotation", np.eye(3)), dtype=np.float64).reshape(3, 3),
         )
 
     def by_name(self) -> dict[str, Camera]:

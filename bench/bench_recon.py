@@ -1,0 +1,146 @@
+"""Reconstruction benchmark: camera accuracy against ground truth + the run reports.
+
+    .venv/bin/python bench/bench_recon.py RUN --gt-par ../shared/data/middlebury-templeSparseRing/templeSR_par.txt
+    .venv/bin/python bench/bench_recon.py RUN --gt-cameras CAPTURE/cameras.json --gt-mesh CAPTURE/mesh.ply
+
+Aligns the recon's camera centres to the ground truth by a similarity (Umeyama), then prints
+per-view and median rotation error (degrees) and camera-centre error (% of the ring radius =
+mean distance of the GT centres to their centroid); with --gt-mesh also the proxy mesh's
+Chamfer-L1 to the GT mesh (in GT units and in % of the GT bbox diagonal) after that alignment,
+plus the run's recon_report.json numbers and per-stage seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from render.cameras import Camera, camera_from_krt, load_cameras, read_middlebury_par  # noqa: E402
+from render.io import read_json  # noqa: E402
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Similarity (s, R, t) minimising sum |s R src_i + t - dst_i|^2 (src, dst [N, 3])."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.T @ xs / len(src)
+    U, S, Vt = np.linalg.svd(cov)
+    D = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        D[2, 2] = -1
+    R = U @ D @ Vt
+    var_s = (xs**2).sum() / len(src)
+    s = float(np.trace(np.diag(S) @ D) / var_s)
+    t = mu_d - s * R @ mu_s
+    return s, R, t
+
+
+def camera_errors(est: list[Camera], gt: list[Camera]) -> dict:
+    """Per-view errors after aligning `est` centres to `gt` centres (matched by order)."""
+    c_est = np.array([c.center for c in est])
+    c_gt = np.array([c.center for c in gt])
+    s, R, t = umeyama(c_est, c_gt)
+    radius = float(np.linalg.norm(c_gt - c_gt.mean(0), axis=1).mean())
+    centre_err = np.linalg.norm((s * c_est @ R.T + t) - c_gt, axis=1) / radius * 100.0
+    rot_err = []
+    for e, g in zip(est, gt, strict=True):
+        r_aligned = R @ e.camera_to_world[:3, :3]  # camera-to-world rotation in the GT frame
+        rel = r_aligned.T @ g.camera_to_world[:3, :3]
+        rot_err.append(np.degrees(np.arccos(np.clip((np.trace(rel) - 1) / 2, -1, 1))))
+    return {
+        "scale": s,
+        "R": R,
+        "t": t,
+        "radius": radius,
+        "rotation_error_deg": np.array(rot_err),
+        "centre_error_pct": centre_err,
+    }
+
+
+def chamfer_l1(a: np.ndarray, b: np.ndarray) -> float:
+    """Symmetric Chamfer-L1: mean of the two mean nearest-neighbour distances."""
+    from scipy.spatial import cKDTree
+
+    d_ab = cKDTree(b).query(a)[0]
+    d_ba = cKDTree(a).query(b)[0]
+    return float(0.5 * (d_ab.mean() + d_ba.mean()))
+
+
+def sample_mesh(path: Path, n: int = 200_000, seed: int = 0) -> np.ndarray:
+    import trimesh
+
+    mesh = trimesh.load(path, force="mesh", process=False)
+    points, _ = trimesh.sample.sample_surface(mesh, n, seed=seed)
+    return np.asarray(points)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("run", type=Path, help="run directory written by `sine recon`")
+    parser.add_argument("--gt-par", type=Path, help="Middlebury *_par.txt with the GT cameras")
+    parser.add_argument(
+        "--gt-cameras", type=Path, help="cameras.json with the GT cameras (e.g. from `sine synth`)"
+    )
+    parser.add_argument(
+        "--gt-mesh", type=Path, help="GT mesh in the GT cameras' frame (Chamfer-L1)"
+    )
+    args = parser.parse_args()
+
+    cams = load_cameras(args.run / "cameras.json")
+    est_by_name = {Path(c.name).stem: c for c in cams.frames}
+    if args.gt_par:
+        gt_by_name = {
+            Path(name).stem: camera_from_krt(K, R, t, 640, 480, name)
+            for name, K, R, t in read_middlebury_par(args.gt_par)
+        }
+    elif args.gt_cameras:
+        gt_by_name = {Path(c.name).stem: c for c in load_cameras(args.gt_cameras).frames}
+    else:
+        parser.error("give --gt-par or --gt-cameras")
+    common = [k for k in est_by_name if k in gt_by_name]
+    est = [est_by_name[k] for k in common]
+    gt = [gt_by_name[k] for k in common]
+    err = camera_errors(est, gt)
+
+    print(f"{'view':<16}{'rot err (deg)':>15}{'centre err (% radius)':>24}")
+    for k, r, c in zip(common, err["rotation_error_deg"], err["centre_error_pct"], strict=True):
+        print(f"{k:<16}{r:>15.3f}{c:>24.3f}")
+    print(
+        f"{'median':<16}{np.median(err['rotation_error_deg']):>15.3f}{np.median(err['centre_error_pct']):>24.3f}"
+    )
+    print(
+        f"{'max':<16}{err['rotation_error_deg'].max():>15.3f}{err['centre_error_pct'].max():>24.3f}"
+    )
+    print(f"registered views compared: {len(common)} of {len(gt_by_name)} GT views")
+
+    if args.gt_mesh:
+        proxy = sample_mesh(args.run / "proxy_mesh.ply")  # run units
+        gt_points = sample_mesh(args.gt_mesh)
+        # run cameras -> GT frame: x_gt = s R x_run + t (the camera similarity).
+        aligned = err["scale"] * proxy @ err["R"].T + err["t"]
+        lo, hi = gt_points.min(0), gt_points.max(0)
+        diag = float(np.linalg.norm(hi - lo))
+        cd = chamfer_l1(aligned, gt_points)
+        print(
+            f"proxy mesh Chamfer-L1 to GT: {cd:.5f} GT units = {100 * cd / diag:.3f} % of bbox diagonal"
+        )
+
+    report_path = args.run / "recon_report.json"
+    if report_path.is_file():
+        report = read_json(report_path)
+        print("recon_report.json:")
+        for key, value in report.items():
+            if not isinstance(value, (list, dict)):
+                print(f"  {key:<36}{value}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,317 @@
+"""Camera poses by structure from motion (pycolmap), tuned for turntable captures.
+
+A turntable's camera is fixed while the object turns, so matches on the static backdrop say
+"nothing moved": SIFT features are extracted inside the foreground masks only (pycolmap's
+`mask_path`: a folder of `<image name>.png`, 0 = ignore). Pairs: exhaustive for small sets,
+otherwise a cyclic window of neighbours (sequential matching with the loop closed between the
+last and first frames). One shared camera (CameraMode.SINGLE), incremental mapping, seeded.
+The largest model is kept; fewer than `min_registered_fraction` of the views registered is an
+error that says what to try. With a distorting camera model the working images and masks are
+undistorted in place afterwards (originals kept in sfm/images_distorted) so cameras.json stays
+pinhole.
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from render.cameras import Camera, pose_from_rt
+from render.errors import SineError
+from render.io import atomic_path, read_depth, read_mask, write_depth, write_mask
+
+
+@dataclass
+class SfmParams:
+    """Knobs of the structure-from-motion stage (filled from ReconConfig)."""
+
+    camera_model: str = "SIMPLE_PINHOLE"
+    exhaustive_below: int = 60
+    sequential_overlap: int = 10
+    max_num_features: int = 8192
+    max_image_size: int = 1600
+    peak_threshold: float = 0.004
+    init_min_num_inliers: int = 50
+    init_min_tri_angle: float = 8.0
+    min_registered_fraction: float = 0.7
+    mapper: str = "auto"  # auto: incremental, then global when views are missing
+    seed: int = 0
+    num_threads: int = -1
+
+
+@dataclass
+class SfmResult:
+    cameras: list[Camera]  # registered views, in input order
+    unregistered: list[str]
+    mean_reprojection_error_px: float
+    points: np.ndarray  # [P, 3] sparse points (SfM frame)
+    num_models: int
+    distortion: np.ndarray  # [4] OpenCV distortion of the shared camera
+    observations: dict  # image name -> (keypoints [M, 2], their 3D points [M, 3])
+    mapper: str  # "incremental" or "global": which mapper gave the kept model
+
+
+def _write_pairs(path: Path, names: list[str], overlap: int) -> None:
+    """A cyclic window: every frame with its `overlap` successors, wrapping around (loop closure)."""
+    n = len(names)
+    pairs = {
+        (min(i, (i + k) % n), max(i, (i + k) % n)) for i in range(n) for k in range(1, overlap + 1)
+    }
+    path.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in sorted(pairs) if i != j))
+
+
+def _camera_from_colmap(image, camera) -> tuple[Camera, np.ndarray]:
+    """pycolmap image + camera -> our Camera (distortion kept separately) and OpenCV dist [4]."""
+    model = camera.model.name
+    p = np.asarray(camera.params, dtype=np.float64)
+    dist = np.zeros(4)
+    if model == "SIMPLE_PINHOLE":
+        fx = fy = p[0]
+        cx, cy = p[1], p[2]
+    elif model == "PINHOLE":
+        fx, fy, cx, cy = p
+    elif model == "SIMPLE_RADIAL":
+        fx = fy = p[0]
+        cx, cy, dist[0] = p[1], p[2], p[3]
+    elif model == "RADIAL":
+        fx = fy = p[0]
+        cx, cy, dist[0], dist[1] = p[1], p[2], p[3], p[4]
+    else:
+        raise SineError(f"unsupported camera model {model}: use PINHOLE, SIMPLE_RADIAL or RADIAL")
+    cam_from_world = image.cam_from_world()
+    m = np.asarray(cam_from_world.matrix(), dtype=np.float64)  # [3, 4]
+    c2w = pose_from_rt(m[:, :3], m[:, 3])  # m = [R | t], world-to-camera
+    cam = Camera(
+        width=camera.width,
+        height=camera.height,
+        fx=fx,
+        fy=fy,
+        cx=cx,
+        cy=cy,
+        camera_to_world=c2w,
+        name=image.name,
+    )
+    return cam, dist
+
+
+def prepare_sfm_images(
+    views: list[tuple[str, Path, Path, Path | None]], work: Path, max_size: int
+) -> tuple[Path, Path]:
+    """Writes SfM inputs: work/images/<name> and work/masks/<name>.png.
+
+    `views` = (name, working image, mask, source image or None). SIFT localises better at the
+    source resolution than on the (smaller) working images, so the source is used when it exists
+    and has the working image's aspect ratio, downscaled to at most `max_size` pixels wide.
+    Masks are resized (nearest) to match and dilated a little (features on the outline count).
+    """
+    if work.exists():
+        shutil.rmtree(work)
+    (work / "images").mkdir(parents=True)
+    (work / "masks").mkdir()
+    sizes = set()
+    for name, image_path, mask_path, source in views:
+        working = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
+        if working is None:
+            raise SineError(f"cannot read {image_path}")
+        h, w = working.shape[:2]
+        image = working
+        if source is not None and Path(source).is_file():
+            raw = cv2.imread(str(source), cv2.IMREAD_COLOR)
+            if (
+                raw is not None
+                and abs(raw.shape[1] / raw.shape[0] - w / h) < 1e-3
+                and raw.shape[1] > w
+            ):
+                image = raw
+        if image.shape[1] > max(max_size, w):
+            s = max(max_size, w) / image.shape[1]
+            image = cv2.resize(
+                image, (max(max_size, w), round(image.shape[0] * s)), interpolation=cv2.INTER_AREA
+            )
+        sizes.add(image.shape[:2])
+        cv2.imwrite(str(work / "images" / name), image)
+        mask = read_mask(mask_path).astype(np.uint8)
+        mask = cv2.resize(mask, (image.shape[1], image.shape[0]), interpolation=cv2.INTER_NEAREST)
+        k = max(3, 2 * round(image.shape[1] / 200) + 1)
+        write_mask(
+            work / "masks" / (name + ".png"), cv2.dilate(mask, np.ones((k, k), np.uint8)) > 0
+        )
+    if len(sizes) > 1:
+        raise SineError(
+            f"the images have {len(sizes)} different sizes; one shared camera needs one size. "
+            "Re-ingest with one --width, or give known poses"
+        )
+    return work / "images", work / "masks"
+
+
+def run_sfm(
+    image_dir: Path, mask_dir: Path, names: list[str], work: Path, params: SfmParams
+) -> SfmResult:
+    """SIFT + matching + mapping on `names` in `image_dir`; masks in `mask_dir`/<name>.png.
+
+    Cameras come back at the resolution of the images in `image_dir`.
+    """
+    import pycolmap
+
+    pycolmap.set_random_seed(params.seed)
+    db_path = work / "database.db"
+    db_path.unlink(missing_ok=True)
+    for sub in ("incremental", "global", "sparse"):
+        shutil.rmtree(work / sub, ignore_errors=True)
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = params.camera_model
+    reader.mask_path = str(mask_dir)
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.max_num_features = params.max_num_features
+    extraction.sift.peak_threshold = params.peak_threshold
+    extraction.num_threads = params.num_threads
+    device = pycolmap.Device.cpu
+    pycolmap.extract_features(
+        db_path,
+        image_dir,
+        image_names=names,
+        camera_mode=pycolmap.CameraMode.SINGLE,
+        reader_options=reader,
+        extraction_options=extraction,
+        device=device,
+    )
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = params.num_threads
+    if len(names) < params.exhaustive_below:
+        pycolmap.match_exhaustive(db_path, matching_options=matching, device=device)
+    else:
+        pairs_path = work / "pairs.txt"
+        _write_pairs(pairs_path, names, params.sequential_overlap)
+        pairing = pycolmap.ImportedPairingOptions()
+        pairing.match_list_path = str(pairs_path)
+        pycolmap.match_image_pairs(
+            db_path, matching_options=matching, pairing_options=pairing, device=device
+        )
+    models = {}
+    if params.mapper in ("auto", "incremental"):
+        options = pycolmap.IncrementalPipelineOptions()
+        options.random_seed = params.seed
+        options.num_threads = params.num_threads
+        options.ba_refine_principal_point = False
+        # small objects on a turntable give few features and small baselines between neighbours.
+        options.mapper.init_min_num_inliers = params.init_min_num_inliers
+        options.mapper.init_min_tri_angle = params.init_min_tri_angle
+        (work / "incremental").mkdir()
+        found = pycolmap.incremental_mapping(
+            db_path, image_dir, work / "incremental", options=options
+        )
+        models.update({("incremental", k): r for k, r in found.items()})
+    best_count = max((r.num_reg_images() for r in models.values()), default=0)
+    if params.mapper == "global" or (params.mapper == "auto" and best_count < len(names)):
+        # Global SfM uses every pair at once: it bridges weak links (wide gaps between views)
+        # where incremental mapping splits into several models.
+        options = pycolmap.GlobalPipelineOptions()
+        options.random_seed = params.seed
+        options.num_threads = params.num_threads
+        (work / "global").mkdir()
+        found = pycolmap.global_mapping(db_path, image_dir, work / "global", options=options)
+        models.update({("global", k): r for k, r in found.items()})
+    # most views registered wins; incremental first on ties (it is listed first).
+    best_key = max(models, key=lambda k: models[k].num_reg_images())
+    best = models[best_key]
+    registered = best.num_reg_images()
+    if registered < params.min_registered_fraction * len(names):
+        raise SineError(
+            f"structure from motion registered only {registered} of {len(names)} views "
+            f"(< {params.min_registered_fraction:.0%}). Try: check the masks (masks/ in the run "
+            "directory, or give --masks DIR), capture with more overlap between neighbouring views "
+            "(<= 10-15 degrees of turn) and more texture, or give known poses (transforms.json, COLMAP, ...)"
+        )
+    (work / "sparse").mkdir()
+    best.write(work / "sparse")
+    by_name = {}
+    for image in best.images.values():
+        if image.has_pose:
+            by_name[image.name] = _camera_from_colmap(image, best.cameras[image.camera_id])
+    cams, dists = [], []
+    for name in names:
+        if name in by_name:
+            cams.append(by_name[name][0])
+            dists.append(by_name[name][1])
+    points = np.array([p.xyz for p in best.points3D.values()], dtype=np.float64).reshape(-1, 3)
+    result = SfmResult(
+        cameras=cams,
+        unregistered=[n for n in names if n not in by_name],
+        mean_reprojection_error_px=float(best.compute_mean_reprojection_error()),
+        points=points,
+        num_models=len(models),
+        mapper=best_key[0],
+        distortion=dists[0] if dists else np.zeros(4),
+        observations=_observations(best),
+    )
+    return result
+
+
+def _observations(reconstruction) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per image name: 2D keypoints [M, 2] with a 3D point and those points [M, 3]."""
+    out = {}
+    for image in reconstruction.images.values():
+        if not image.has_pose:
+            continue
+        uv, xyz = [], []
+        for p2d in image.points2D:
+            if p2d.has_point3D():
+                uv.append(p2d.xy)
+                xyz.append(reconstruction.points3D[p2d.point3D_id].xyz)
+        out[image.name] = (np.array(uv).reshape(-1, 2), np.array(xyz).reshape(-1, 3))
+    return out
+
+
+def undistort_in_place(paths: list[Path], camera: Camera, dist: np.ndarray, nearest: bool) -> None:
+    """Undistorts images/masks with the pinhole K of `camera` kept (pixel centres at +0.5)."""
+    K = camera.K.copy()
+    K[0, 2] -= 0.5  # OpenCV puts pixel centres at integers
+    K[1, 2] -= 0.5
+    map1, map2 = cv2.initUndistortRectifyMap(
+        K, np.asarray(dist, np.float64), None, K, (camera.width, camera.height), cv2.CV_32FC1
+    )
+    interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+    for path in paths:
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        out = cv2.remap(raw, map1, map2, interp, borderMode=cv2.BORDER_REPLICATE)
+        with atomic_path(path) as tmp:
+            ok = cv2.imwrite(str(tmp), out)
+            if not ok:
+                raise SineError(f"could not write {path}")
+
+
+def depth_scale_to_sfm(
+    observations: dict, depth_paths: dict[str, Path], cameras: list[Camera]
+) -> float | None:
+    """Median ratio SfM-z / dataset-depth at the sparse keypoints: puts dataset depth in SfM units."""
+    ratios = []
+    for cam in cameras:
+        path = depth_paths.get(cam.name)
+        if path is None or not path.is_file() or cam.name not in observations:
+            continue
+        uv, xyz = observations[cam.name]
+        if len(uv) == 0:
+            continue
+        depth = read_depth(path)
+        sy, sx = depth.shape[0] / cam.height, depth.shape[1] / cam.width
+        cols = np.clip((uv[:, 0] * sx).astype(int), 0, depth.shape[1] - 1)
+        rows = np.clip((uv[:, 1] * sy).astype(int), 0, depth.shape[0] - 1)
+        d = depth[rows, cols]
+        _, z = cam.project(xyz)
+        ok = (d > 0) & (z > 0)
+        ratios.append(z[ok] / d[ok])
+    if not ratios:
+        return None
+    ratios = np.concatenate(ratios)
+    return float(np.median(ratios)) if len(ratios) >= 10 else None
+
+
+def rescale_depth(paths: list[Path], factor: float) -> None:
+    """Multiplies stored depth maps by `factor` (0 stays 0)."""
+    for path in paths:
+        if path.is_file():
+            write_depth(path, read_depth(path) * np.float32(factor))
