@@ -1,0 +1,120 @@
+"""The template radiance field (paper Sec. 3 / DESIGN.md section 7) and the background model.
+
+TemplateField: hash grid (16 levels x 2 features) -> density head (1 hidden layer of 128) ->
+sigma (trunc_exp) + a geometry feature; colour head (2 hidden layers of 64) on
+[geometry feature, SH degree 4 of the view direction] -> rgb (sigmoid). The geometry feature is
+exposed (`geo_feat`) so a DINO feature head can be attached later.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import nn
+
+from render.hashgrid import HashGrid, HashGridConfig
+from render.sh import sh_encode
+
+
+class _TruncExp(torch.autograd.Function):
+    """exp(x) whose gradient uses exp(min(x, 15)) (Instant-NGP's density activation)."""
+
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        return torch.exp(x)
+
+    @staticmethod
+    def backward(ctx, g):
+        (x,) = ctx.saved_tensors
+        return g * torch.exp(x.clamp(max=15.0))
+
+
+def trunc_exp(x: torch.Tensor) -> torch.Tensor:
+    return _TruncExp.apply(x)
+
+
+@dataclass
+class TemplateFieldConfig:
+    """Architecture of the template field."""
+
+    grid: HashGridConfig = field(default_factory=lambda: HashGridConfig(log2_table=15))
+    bound: float = 1.0  # the grid covers [-bound, bound]^3 (run units: object in the unit sphere)
+    geo_feat_dim: int = 15  # geometry feature passed to the colour head (and a feature head)
+    density_hidden: int = 128  # hidden width of the density head (1 hidden layer)
+    color_hidden: int = 64  # hidden width of the colour head (2 hidden layers)
+    sh_degree: int = 4  # spherical-harmonics degree of the direction encoding
+    density_activation: str = "trunc_exp"  # trunc_exp | softplus
+    gather: str = "fused"  # hash-grid gather implementation (see render/hashgrid.py)
+
+
+def mlp(n_in: int, hidden: int, n_layers: int, n_out: int) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    width = n_in
+    for _ in range(n_layers):
+        layers += [nn.Linear(width, hidden), nn.ReLU(inplace=True)]
+        width = hidden
+    layers.append(nn.Linear(width, n_out))
+    return nn.Sequential(*layers)
+
+
+class TemplateField(nn.Module):
+    """x [N, 3] (run units), d [N, 3] unit directions -> sigma [N], rgb [N, 3], geo_feat [N, F]."""
+
+    def __init__(self, cfg: TemplateFieldConfig | None = None):
+        super().__init__()
+        self.cfg = cfg = cfg or TemplateFieldConfig()
+        self.grid = HashGrid(cfg.grid, bound=cfg.bound, gather=cfg.gather)
+        self.density_net = mlp(self.grid.output_dim, cfg.density_hidden, 1, 1 + cfg.geo_feat_dim)
+        self.color_net = mlp(cfg.geo_feat_dim + cfg.sh_degree**2, cfg.color_hidden, 2, 3)
+
+    def _sigma_act(self, raw: torch.Tensor) -> torch.Tensor:
+        if self.cfg.density_activation == "softplus":
+            return nn.functional.softplus(raw - 1.0)
+        return trunc_exp(raw)
+
+    def geometry(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """x [N, 3] -> (sigma [N], geo_feat [N, F]); zero density outside the grid's box."""
+        h = self.density_net(self.grid(x))  # [N, 1 + F]
+        inside = (x.abs() <= self.cfg.bound).all(dim=-1)  # [N]
+        sigma = self._sigma_act(h[:, 0]) * inside
+        return sigma, h[:, 1:]
+
+    def density(self, x: torch.Tensor) -> torch.Tensor:
+        """Density only: x [N, 3] -> sigma [N]."""
+        return self.geometry(x)[0]
+
+    def color(self, geo_feat: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """geo_feat [N, F], d [N, 3] -> rgb [N, 3] in (0, 1)."""
+        h = torch.cat([geo_feat, sh_encode(d, self.cfg.sh_degree)], dim=-1)
+        return torch.sigmoid(self.color_net(h))
+
+    def forward(self, x: torch.Tensor, d: torch.Tensor) -> dict[str, torch.Tensor]:
+        sigma, geo = self.geometry(x)
+        return {"sigma": sigma, "rgb": self.color(geo, d), "geo_feat": geo}
+
+    def param_groups(self, lr_grid: float, lr_mlp: float, weight_decay_mlp: float = 1e-6):
+        """Adam groups: the hash table (no weight decay, tiny eps) and the MLPs."""
+        mlps = list(self.density_net.parameters()) + list(self.color_net.parameters())
+        return [
+            {"params": [self.grid.table], "lr": lr_grid, "eps": 1e-15, "name": "grid"},
+            {"params": mlps, "lr": lr_mlp, "weight_decay": weight_decay_mlp, "name": "mlp"},
+        ]
+
+
+class Background(nn.Module):
+    """A constant background colour per dataset: fixed (e.g. from masks) or learned."""
+
+    def __init__(self, color=(1.0, 1.0, 1.0), learnable: bool = False):
+        super().__init__()
+        color = torch.as_tensor(color, dtype=torch.float32)
+        self.learnable = learnable
+        if learnable:
+            c = color.clamp(1e-3, 1 - 1e-3)
+            self.logit = nn.Parameter(torch.log(c / (1 - c)))
+        else:
+            self.register_buffer("color", color.clone())
+
+    def forward(self) -> torch.Tensor:  # [3]
+        return torch.sigmoid(self.logit) if self.learnable else self.color

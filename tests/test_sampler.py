@@ -1,0 +1,156 @@
+"""Proxy ray casting, band sampling, uniform + importance sampling, and rendering through them."""
+
+import numpy as np
+import open3d as o3d
+import torch
+
+from render.renderer import render_image, render_rays
+from render.sampler import (
+    BandSampler,
+    ProxyRaycaster,
+    UniformSampler,
+    sample_pdf,
+    sphere_interval,
+)
+
+
+def _plane(z=0.0, size=0.9):
+    v = np.array([[-size, -size, z], [size, -size, z], [size, size, z], [-size, size, z]])
+    f = np.array([[0, 1, 2], [0, 2, 3]])  # counter-clockwise seen from +z: normal +z
+    return v, f
+
+
+def _sphere(r=0.5):
+    m = o3d.geometry.TriangleMesh.create_sphere(r, 60)
+    return m
+
+
+def _rays(xs, z=-3.0, dz=1.0):
+    o = torch.tensor([[x, 0.0, z] for x in xs], dtype=torch.float32)
+    d = torch.tensor([[0.0, 0.0, dz]] * len(xs), dtype=torch.float32)
+    return o, d
+
+
+def test_sphere_interval():
+    o, d = _rays([0.0, 0.6, 2.0], z=-3.0)
+    near, far, hit = sphere_interval(o, d, 1.0)
+    assert hit.tolist() == [True, True, False]
+    torch.testing.assert_close(near[0], torch.tensor(2.0))
+    torch.testing.assert_close(far[0], torch.tensor(4.0))
+    torch.testing.assert_close(near[1], torch.tensor(3.0 - 0.8))
+
+
+def test_plane_hit_and_inflated_hit():
+    rc = ProxyRaycaster(_plane(), inflate=0.05)
+    o = torch.tensor([[0.1, 0.2, 0.5]])
+    d = torch.tensor([[0.0, 0.0, -1.0]])
+    hits = rc.cast(o, d)
+    torch.testing.assert_close(hits.t_hit, torch.tensor([0.5]))
+    torch.testing.assert_close(hits.t_inflated, torch.tensor([0.45]))
+    assert hits.hit.tolist() == [True]
+
+
+def test_band_samples_around_sphere_depth_and_misses():
+    d_band = 0.05
+    sampler = BandSampler(ProxyRaycaster(_sphere(0.5), inflate=d_band), n_band=16, n_coarse=4)
+    # centre ray, ray missing the sphere but inside the inflated shell, clear miss
+    o, d = _rays([0.0, 0.52, 0.7])
+    hits = sampler.cast(o, d)
+    assert hits.hit.tolist() == [True, True, False]
+    assert np.isfinite(hits.t_hit[0].item()) and not np.isfinite(hits.t_hit[1].item())
+    assert abs(hits.t_hit[0].item() - 2.5) < 2e-3  # tessellated sphere
+    sub = hits[hits.hit]
+    t, delta = sampler.sample(sub, perturb=True, generator=torch.Generator().manual_seed(0))
+    assert t.shape == (2, sampler.samples_per_ray) == (2, 21)
+    assert torch.all(t[:, 1:] >= t[:, :-1]) and torch.all(delta > 0)
+    # the bins tile the ray-in-sphere interval [2, 4] of the centre ray
+    torch.testing.assert_close(delta[0].sum(), torch.tensor(2.0), atol=1e-4, rtol=0)
+    in_band = (t[0] > 2.5 - d_band - 2e-3) & (t[0] < 2.5 + d_band + 2e-3)
+    assert in_band.sum() >= 16
+    # grazing ray: its band starts at the inflated hit
+    lo, hi = sampler.band(sub)
+    torch.testing.assert_close(lo[1], sub.t_inflated[1])
+    torch.testing.assert_close(hi[1] - lo[1], torch.tensor(2 * d_band), atol=1e-5, rtol=0)
+
+
+def test_update_vertices_moves_the_hit():
+    mesh = _sphere(0.5)
+    rc = ProxyRaycaster(mesh, inflate=0.02)
+    o, d = _rays([0.0])
+    t0 = rc.cast(o, d).t_hit.item()
+    rc.update_vertices(np.asarray(mesh.vertices) + np.array([0.0, 0.0, 0.2]))
+    t1 = rc.cast(o, d).t_hit.item()
+    assert abs((t1 - t0) - 0.2) < 1e-4
+
+
+def test_sample_pdf_known_pdf():
+    bins = torch.tensor([[0.0, 1.0, 2.0], [0.0, 1.0, 2.0]])
+    w = torch.tensor([[0.0, 1.0], [1.0, 3.0]])
+    s = sample_pdf(bins, w, 8)
+    # all mass in the second bin: samples spread over [1, 2] at the CDF levels (i + 0.5) / 8
+    expected = 1.0 + (torch.arange(8) + 0.5) / 8
+    torch.testing.assert_close(s[0], expected, atol=1e-4, rtol=0)
+    # 1/4 of the mass in [0, 1]: levels 1/16, 3/16 land there, at 4u
+    assert (s[1] < 1.0).sum() == 2
+    torch.testing.assert_close(s[1, :2], torch.tensor([0.25, 0.75]), atol=1e-4, rtol=0)
+    rnd = sample_pdf(bins[1:].expand(2000, 3), w[1:].expand(2000, 2), 4, perturb=True)
+    frac = (rnd < 1.0).float().mean().item()
+    assert abs(frac - 0.25) < 0.02
+
+
+def test_uniform_sampler_coarse_plus_importance():
+    sampler = UniformSampler(n_coarse=64, n_importance=128)
+    o, d = _rays([0.0, 2.0])
+    hits = sampler.cast(o, d)
+    assert hits.hit.tolist() == [True, False]
+    sub = hits[hits.hit]
+    t, delta = sampler.sample(sub)
+    assert t.shape == (1, 64)
+    w = torch.zeros(1, 64)
+    w[0, 20] = 1.0  # all weight in one coarse bin
+    t2, delta2 = sampler.importance(sub, t, w)
+    assert t2.shape == (1, 192)
+    assert torch.all(t2[:, 1:] >= t2[:, :-1])
+    edges_lo = 2.0 + 2.0 * 20 / 64
+    fine = t2[0][(t2[0] > edges_lo) & (t2[0] < edges_lo + 2.0 / 64)]
+    assert fine.numel() >= 128
+    torch.testing.assert_close(delta2.sum(), torch.tensor(2.0), atol=1e-4, rtol=0)
+
+
+def _solid_sphere_field(points, dirs):
+    inside = points.norm(dim=-1) < 0.5
+    sigma = inside.float() * 1e4
+    rgb = torch.tensor([1.0, 0.0, 0.0]).expand(points.shape[0], 3)
+    return {"sigma": sigma, "rgb": rgb, "feat": points[:, :1] * 0 + 2.0}
+
+
+def test_render_rays_band_and_uniform_agree_on_a_solid_sphere():
+    o, d = _rays([0.0, 0.2, 0.9])
+    bg = torch.tensor([0.0, 0.0, 1.0])
+    band = BandSampler(ProxyRaycaster(_sphere(0.5), inflate=0.05), n_band=32, n_coarse=4)
+    for sampler in (band, UniformSampler(64, 128)):
+        out = render_rays(_solid_sphere_field, o, d, sampler, bg)
+        torch.testing.assert_close(out["opacity"], torch.tensor([1.0, 1.0, 0.0]), atol=1e-3, rtol=0)
+        torch.testing.assert_close(out["rgb"][0], torch.tensor([1.0, 0.0, 0.0]), atol=1e-3, rtol=0)
+        torch.testing.assert_close(out["rgb"][2], bg)
+        torch.testing.assert_close(
+            out["feat"][:, 0], torch.tensor([2.0, 2.0, 0.0]), atol=1e-3, rtol=0
+        )
+        expect = 3.0 - np.sqrt(0.25 - 0.04)
+        assert abs(out["depth"][0].item() - 2.5) < 0.01
+        assert abs(out["depth"][1].item() - expect) < 0.01
+    assert band.samples_per_ray < 192 / 4
+
+
+def test_render_image_shapes():
+    from render.cameras import Camera, look_at
+
+    cam = Camera(
+        16, 12, 20.0, 20.0, 8.0, 6.0, camera_to_world=look_at(np.array([0, -3.0, 0]), np.zeros(3))
+    )
+    sampler = BandSampler(ProxyRaycaster(_sphere(0.5), inflate=0.05), n_band=8, n_coarse=2)
+    img = render_image(cam, _solid_sphere_field, sampler, torch.ones(3), chunk=50)
+    assert img["rgb"].shape == (12, 16, 3) and img["opacity"].shape == (12, 16)
+    assert img["feat"].shape == (12, 16, 1)
+    assert abs(img["opacity"][6, 8] - 1.0) < 1e-3 and img["opacity"][0, 0] == 0.0
+    assert abs(img["z"][6, 8] - 2.5) < 0.02
