@@ -6,7 +6,7 @@ from __future__ import annotations
 def register(sub) -> None:
     """Adds this package's subcommands to the `sine` parser."""
     # Each subcommand module exposes `add_parser(sub)`; they are filled in as stages land.
-    for module_name in ("recon.ingest_cli", "recon.synth_cli"):
+    for module_name in ("recon.ingest_cli", "recon.synth_cli", "recon.recon_cli"):
         try:
             module = __import__(module_name, fromlist=["add_parser"])
         except ModuleNotFoundError as exc:

@@ -1,0 +1,297 @@
+"""`sine recon`: turntable-aware reconstruction as idempotent stages.
+
+ingest -> masks -> poses -> normalize -> depth -> proxy_mesh -> report. Each stage reads and
+writes run-directory artefacts (atomically) and records itself in `recon_state.json`; a finished
+stage is skipped on the next run unless `force` is set. A stage that runs invalidates every
+stage after it. The per-stage results become `recon_report.json`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from recon.rundir import RunDir
+from render.cameras import CameraSet
+from render.configs import option, to_dict
+from render.errors import SineError
+from render.io import read_depth, read_json, read_mask, write_depth, write_json
+
+STAGES = ("ingest", "masks", "poses", "normalize", "depth", "proxy_mesh", "report")
+
+
+@dataclass
+class ReconConfig:
+    """Options of `sine recon` (besides the ingest options)."""
+
+    mask_border_fraction: float = option(
+        0.04, "masks: width of the image border sampled for backdrop colours"
+    )
+    mask_lightness_weight: float = option(
+        0.35, "masks: weight of Lab lightness in the colour-keying distance (hue/chroma weigh 1)"
+    )
+    mask_grabcut_iterations: int = option(
+        4, "masks: GrabCut iterations after colour keying (0 = keying only)"
+    )
+    camera_model: str = option(
+        "SIMPLE_PINHOLE",
+        "poses: COLMAP camera model shared by all views (with distortion the working images are undistorted)",
+        choices=["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL"],
+    )
+    mapper: str = option(
+        "auto",
+        "poses: SfM mapper; auto = incremental, plus global when incremental leaves views out",
+        choices=["auto", "incremental", "global"],
+    )
+    sfm_max_image_size: int = option(
+        1600,
+        "poses: SIFT runs on the source images (more precise than the working ones) up to this width",
+    )
+    exhaustive_below: int = option(
+        60, "poses: match all pairs below this many views, else a cyclic window"
+    )
+    sequential_overlap: int = option(
+        10, "poses: neighbours on each side matched in the cyclic window"
+    )
+    min_registered_fraction: float = option(
+        0.7, "poses: fail when fewer views than this fraction register"
+    )
+    seed: int = option(0, "poses: random seed of SfM")
+    target_radius: float = option(
+        0.85, "normalize: radius of the object's bounding sphere in run units"
+    )
+    hull_resolution: int = option(160, "depth: visual-hull voxels along the longest side")
+    hull_tolerance: int = option(1, "depth: views allowed to disagree when carving the visual hull")
+    tsdf_voxel_size: float = option(1 / 256, "proxy: TSDF voxel size in run units")
+    tsdf_trunc_voxels: float = option(3.0, "proxy: TSDF truncation in voxels")
+    min_component: float = option(
+        0.02,
+        "proxy: keep connected parts with at least this fraction of the largest part's triangles",
+    )
+    target_triangles: int = option(40_000, "proxy: quadric decimation target triangle count")
+    contact_sheet_columns: int = option(6, "report: thumbnails per row in the contact sheet")
+
+
+class Pipeline:
+    """Runs the stages on one run directory; `state` persists in recon_state.json."""
+
+    def __init__(
+        self, run: RunDir, cfg: ReconConfig, force: bool = False, ignore_poses: bool = False
+    ):
+        self.run, self.cfg, self.force, self.ignore_poses = run, cfg, force, ignore_poses
+        self.state_path = run.root / "recon_state.json"
+        self.state = read_json(self.state_path) if self.state_path.is_file() else {"stages": {}}
+
+    # ---- bookkeeping ------------------------------------------------------------------------
+    def _done(self, stage: str) -> bool:
+        return bool(self.state["stages"].get(stage, {}).get("done"))
+
+    def _record(self, stage: str, info: dict, seconds: float) -> None:
+        later = STAGES[STAGES.index(stage) + 1 :]
+        for name in later:
+            self.state["stages"].pop(name, None)
+        self.state["stages"][stage] = {"done": True, "seconds": round(seconds, 3), **info}
+        write_json(self.state_path, self.state)
+
+    def run_stage(self, stage: str, fn, *args) -> dict:
+        if self._done(stage) and not self.force:
+            print(f"[recon] {stage}: done already (use --force to redo)")
+            return self.state["stages"][stage]
+        t0 = time.perf_counter()
+        info = fn(*args) or {}
+        self._record(stage, info, time.perf_counter() - t0)
+        print(f"[recon] {stage}: {time.perf_counter() - t0:.1f} s")
+        return self.state["stages"][stage]
+
+    # ---- helpers ----------------------------------------------------------------------------
+    def views(self) -> list[dict]:
+        return [r for r in self.run.load_captures()["images"] if r.get("status", "ok") == "ok"]
+
+    def masks_for(self, cameras) -> list[np.ndarray]:
+        return [read_mask(self.run.mask_path(c.name)) for c in cameras]
+
+    # ---- stages -----------------------------------------------------------------------------
+    def stage_masks(self) -> dict:
+        from recon.masks import MaskParams, compute_masks
+
+        views = self.views()
+        redo = set(self.state["stages"].get("masks", {}).get("auto", [])) if self.force else set()
+        params = MaskParams(
+            border_fraction=self.cfg.mask_border_fraction,
+            lightness_weight=self.cfg.mask_lightness_weight,
+            grabcut_iterations=self.cfg.mask_grabcut_iterations,
+        )
+        names = [r["name"] for r in views]
+        out = compute_masks(
+            [self.run.image_path(n) for n in names],
+            [self.run.mask_path(n) for n in names],
+            params,
+            redo=redo,
+        )
+        coverage = list(out["coverage"].values())
+        return {
+            "auto": out["auto"],
+            "mask_coverage_mean": float(np.mean(coverage)),
+            "mask_coverage_min": float(np.min(coverage)),
+            "masks_automatic": len(out["auto"]),
+            "masks_given": len(names) - len(out["auto"]),
+        }
+
+    def stage_poses(self) -> dict:
+        from recon.poses import (
+            SfmParams,
+            depth_scale_to_sfm,
+            prepare_sfm_images,
+            rescale_depth,
+            run_sfm,
+            undistort_in_place,
+        )
+
+        captures = self.run.load_captures()
+        views = self.views()
+        if captures.get("poses") and self.run.cameras.is_file() and not self.ignore_poses:
+            cams = self.run.load_cameras()
+            return {
+                "pose_source": "input",
+                "registered_views": len(cams.frames),
+                "total_views": len(views),
+                "unregistered": [],
+                "mean_reprojection_error_px": None,
+            }
+        work = self.run.root / "sfm"
+        sfm_views = []
+        for r in views:
+            source = Path(r["source"]) if r.get("source") and not r.get("undistorted") else None
+            sfm_views.append(
+                (r["name"], self.run.image_path(r["name"]), self.run.mask_path(r["name"]), source)
+            )
+        image_dir, mask_dir = prepare_sfm_images(sfm_views, work, self.cfg.sfm_max_image_size)
+        params = SfmParams(
+            camera_model=self.cfg.camera_model,
+            exhaustive_below=self.cfg.exhaustive_below,
+            sequential_overlap=self.cfg.sequential_overlap,
+            min_registered_fraction=self.cfg.min_registered_fraction,
+            mapper=self.cfg.mapper,
+            seed=self.cfg.seed,
+        )
+        names = [r["name"] for r in views]
+        result = run_sfm(image_dir, mask_dir, names, work, params)
+        info = {"pose_source": f"sfm ({result.mapper})", "sfm_models": result.num_models}
+        by_name = {r["name"]: r for r in views}
+        depth_paths = {n: self.run.depth_path(n) for n in names if by_name[n].get("depth")}
+        if depth_paths:
+            factor = depth_scale_to_sfm(result.observations, depth_paths, result.cameras)
+            if factor is None:
+                raise SineError(
+                    "cannot relate the capture's depth maps to the SfM frame (too few sparse points)"
+                )
+            rescale_depth(list(depth_paths.values()), factor)
+            info["dataset_depth_to_sfm_scale"] = factor
+        frames = [
+            c.resized(by_name[c.name]["width"], by_name[c.name]["height"]).replace(
+                split=by_name[c.name]["split"]
+            )
+            for c in result.cameras
+        ]
+        if np.any(result.distortion != 0):
+            for c in frames:
+                undistort_in_place(
+                    [self.run.image_path(c.name)], c, result.distortion, nearest=False
+                )
+                undistort_in_place([self.run.mask_path(c.name)], c, result.distortion, nearest=True)
+            info["undistorted_distortion"] = [float(x) for x in result.distortion]
+        self.run.save_cameras(CameraSet(frames=frames, extra={"source_format": "sfm"}))
+        print(
+            f"[recon] poses: registered {len(frames)} of {len(names)} views, mean reprojection "
+            f"error {result.mean_reprojection_error_px:.3f} px"
+        )
+        return {
+            **info,
+            "registered_views": len(frames),
+            "total_views": len(names),
+            "unregistered": result.unregistered,
+            "mean_reprojection_error_px": result.mean_reprojection_error_px,
+            "sparse_points": len(result.points),
+        }
+
+    def stage_normalize(self) -> dict:
+        from recon.normalize import apply_normalization, compute_normalization
+        from recon.poses import rescale_depth
+
+        cams = self.run.load_cameras()
+        norm, stats = compute_normalization(
+            cams.frames, self.masks_for(cams.frames), self.cfg.target_radius
+        )
+        new = apply_normalization(cams, norm)
+        self.run.save_cameras(new)
+        depth_files = [
+            self.run.depth_path(c.name)
+            for c in cams.frames
+            if self.run.depth_path(c.name).is_file()
+        ]
+        rescale_depth(depth_files, norm.scale)  # depth follows the frame's units
+        return {
+            **stats,
+            "normalization_scale": new.scale,
+            "normalization_center": [float(x) for x in new.center],
+        }
+
+    def stage_depth(self) -> dict:
+        from recon.depth import visual_hull_depth
+
+        cams = self.run.load_cameras().frames
+        by_name = {r["name"]: r for r in self.views()}
+        if all(by_name.get(c.name, {}).get("depth") for c in cams):
+            return {"depth_source": "dataset"}
+        depths, stats = visual_hull_depth(
+            cams, self.masks_for(cams), self.cfg.hull_resolution, self.cfg.hull_tolerance
+        )
+        for cam, depth in zip(cams, depths, strict=True):
+            write_depth(self.run.depth_path(cam.name), depth)
+        return {"depth_source": "visual_hull", **stats}
+
+    def stage_proxy_mesh(self) -> dict:
+        from recon.proxy_mesh import (
+            clean_mesh,
+            cull_outside_silhouettes,
+            fuse_tsdf,
+            mesh_stats,
+            write_mesh,
+        )
+
+        cams = self.run.load_cameras().frames
+        depths = [read_depth(self.run.depth_path(c.name)) for c in cams]
+        mesh = fuse_tsdf(cams, depths, self.cfg.tsdf_voxel_size, self.cfg.tsdf_trunc_voxels)
+        mesh = cull_outside_silhouettes(mesh, cams, self.masks_for(cams))
+        mesh = clean_mesh(mesh, self.cfg.target_triangles, min_component=self.cfg.min_component)
+        write_mesh(self.run.proxy_mesh, mesh)
+        return mesh_stats(mesh)
+
+    def stage_report(self) -> dict:
+        from recon.report import write_report
+
+        return write_report(self.run, self.state, self.cfg.contact_sheet_columns)
+
+
+def run_recon(capture: Path | None, run: RunDir, cfg: ReconConfig, ingest_cfg=None) -> dict:
+    """Runs every stage (skipping finished ones unless ingest_cfg.force); returns the report."""
+    from recon.ingest import IngestConfig, ingest_capture
+
+    ingest_cfg = ingest_cfg or IngestConfig()
+    pipe = Pipeline(run, cfg, force=ingest_cfg.force, ignore_poses=ingest_cfg.ignore_poses)
+    if capture is not None:
+        t0 = time.perf_counter()
+        summary = ingest_capture(capture, run, ingest_cfg)
+        seconds = time.perf_counter() - t0
+        if not summary.get("skipped") or not pipe._done("ingest"):
+            pipe._record("ingest", {"total_views": summary["views"]}, seconds)
+        print(f"[recon] ingest: {'done already' if summary.get('skipped') else f'{seconds:.1f} s'}")
+    elif not run.captures.is_file():
+        raise SineError(f"{run.root} has no captures.json: give the capture to reconstruct")
+    run.append_config("recon", {"recon": to_dict(cfg), "ingest": to_dict(ingest_cfg)})
+    for stage in STAGES[1:]:
+        pipe.run_stage(stage, getattr(pipe, f"stage_{stage}"))
+    return read_json(run.recon_report)

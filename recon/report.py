@@ -1,0 +1,91 @@
+"""recon_report.json (flat keys) and a contact sheet of masks vs the proxy mesh's silhouettes.
+
+Silhouette IoU: the proxy mesh is ray cast into every registered view; its hit mask is compared
+with the view's foreground mask. The contact sheet shows thumbnails with the mask outline in
+green and the proxy silhouette outline in magenta.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from recon.rundir import RunDir
+from render.io import read_image, read_mask, write_image, write_json
+
+STAGE_KEYS_SKIP = ("done", "seconds", "auto")
+
+
+def proxy_silhouettes(run: RunDir, cameras) -> list[np.ndarray]:
+    """Proxy mesh silhouettes [H, W] bool, one per camera (Open3D ray casting)."""
+    import open3d as o3d
+
+    mesh = o3d.t.io.read_triangle_mesh(str(run.proxy_mesh))
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        mesh.vertex.positions.to(o3d.core.float32), mesh.triangle.indices.to(o3d.core.uint32)
+    )
+    out = []
+    for cam in cameras:
+        origins, dirs = cam.rays()
+        rays = o3d.core.Tensor(np.concatenate([origins, dirs], 1))
+        hit = np.isfinite(scene.cast_rays(rays)["t_hit"].numpy())
+        out.append(hit.reshape(cam.height, cam.width))
+    return out
+
+
+def contact_sheet(images, masks, silhouettes, columns: int = 6, width: int = 200) -> np.ndarray:
+    """Thumbnails [H, W, 3] float: mask outline green, proxy silhouette outline magenta."""
+    tiles = []
+    for image, mask, sil in zip(images, masks, silhouettes, strict=True):
+        h = round(image.shape[0] * width / image.shape[1])
+        tile = cv2.resize(image, (width, h), interpolation=cv2.INTER_AREA)
+        for m, colour in ((mask, (0.0, 1.0, 0.0)), (sil, (1.0, 0.0, 1.0))):
+            small = cv2.resize(m.astype(np.uint8), (width, h), interpolation=cv2.INTER_NEAREST)
+            contours, _ = cv2.findContours(small, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+            cv2.drawContours(tile, contours, -1, colour, 1)
+        tiles.append(tile)
+    th = max(t.shape[0] for t in tiles)
+    tiles = [np.pad(t, ((0, th - t.shape[0]), (0, 0), (0, 0))) for t in tiles]
+    while len(tiles) % columns:
+        tiles.append(np.zeros_like(tiles[0]))
+    rows = [np.hstack(tiles[i : i + columns]) for i in range(0, len(tiles), columns)]
+    return np.vstack(rows)
+
+
+def write_report(run: RunDir, state: dict, columns: int = 6) -> dict:
+    """Computes silhouette IoU, writes the contact sheet and recon_report.json; returns IoU stats."""
+    cams = run.load_cameras().frames
+    masks = [read_mask(run.mask_path(c.name)) for c in cams]
+    sils = proxy_silhouettes(run, cams)
+    ious = []
+    for mask, sil in tqdm(list(zip(masks, sils, strict=True)), desc="report", unit="view"):
+        union = np.logical_or(mask, sil).sum()
+        ious.append(float(np.logical_and(mask, sil).sum() / union) if union else 1.0)
+    images = [read_image(run.image_path(c.name)) for c in cams]
+    sheet_path = run.root / "recon_contact_sheet.png"
+    write_image(sheet_path, np.clip(contact_sheet(images, masks, sils, columns), 0, 1))
+
+    report: dict = {}
+    for stage, info in state["stages"].items():
+        for key, value in info.items():
+            if key not in STAGE_KEYS_SKIP:
+                report[key] = value
+        report[f"seconds_{stage}"] = info.get("seconds")
+    report.update(
+        {
+            "silhouette_iou_mean": float(np.mean(ious)),
+            "silhouette_iou_min": float(np.min(ious)),
+            "silhouette_iou_per_view": {
+                c.name: round(i, 4) for c, i in zip(cams, ious, strict=True)
+            },
+            "contact_sheet": sheet_path.name,
+        }
+    )
+    report.setdefault("registered_views", len(cams))
+    report.setdefault("unregistered", [])
+    stage_seconds = [v for k, v in report.items() if k.startswith("seconds_") and v is not None]
+    report["seconds_total_before_report"] = float(sum(stage_seconds))
+    write_json(run.recon_report, report)
+    return {"silhouette_iou_mean": report["silhouette_iou_mean"]}
