@@ -215,6 +215,12 @@ def run_sfm(
         (work / "global").mkdir()
         found = pycolmap.global_mapping(db_path, image_dir, work / "global", options=options)
         models.update({("global", k): r for k, r in found.items()})
+    if not any(r.num_reg_images() for r in models.values()):
+        raise SineError(
+            f"structure from motion registered no views out of {len(names)}. Try: check the masks "
+            "(masks/ in the run directory), capture with more overlap between neighbouring views "
+            "(<= 10-15 degrees of turn), more texture on the object, or give known poses"
+        )
     # most views registered wins; incremental first on ties (it is listed first).
     best_key = max(models, key=lambda k: models[k].num_reg_images())
     best = models[best_key]

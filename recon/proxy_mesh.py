@@ -104,6 +104,9 @@ def clean_mesh(
         return m
 
     mesh = basic(mesh)
+    v = np.asarray(mesh.vertices)
+    span = v.max(0) - v.min(0) if len(v) else np.zeros(3)
+    bounds = (v.min(0) - 0.05 * span, v.max(0) + 0.05 * span) if len(v) else (0, 0)
     if len(mesh.triangles) == 0:
         raise SineError(
             "the fused proxy mesh is empty: the depth maps do not agree (check poses and masks)"
@@ -116,7 +119,11 @@ def clean_mesh(
         pass
     if len(mesh.triangles) > target_triangles:
         mesh = basic(mesh.simplify_quadric_decimation(target_number_of_triangles=target_triangles))
-        mesh = basic(_keep_components(mesh, min_component))
+        # quadric decimation can fling a vertex far away (degenerate quadric): drop such vertices.
+        lo, hi = bounds
+        v = np.asarray(mesh.vertices)
+        mesh.remove_vertices_by_mask(np.any((v < lo) | (v > hi), axis=1))
+        mesh = basic(_keep_components(basic(mesh), min_component))
     if signed_volume(mesh) < 0:
         mesh.triangles = o3d.utility.Vector3iVector(np.asarray(mesh.triangles)[:, ::-1].copy())
     mesh.compute_vertex_normals()

@@ -2,7 +2,7 @@
 
 A voxel is kept when every view that sees it (projects inside the image, in front of the camera)
 has foreground there (masks slightly dilated against calibration/mask errors; `tolerance` views
-may disagree). Used by normalisation (the object's bounding sphere) and as a depth source
+may disagree) and at least `min_seen_fraction` of the views see it. Used by normalisation (the object's bounding sphere) and as a depth source
 (hull mesh via marching cubes, rendered by ray casting).
 """
 
@@ -30,6 +30,7 @@ def carve(
     resolution: int,
     dilate_px: int = 1,
     tolerance: int = 0,
+    min_seen_fraction: float = 0.5,
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """Occupancy [R, R, R] (x, y, z index order) of the cube-ish box [lo, hi].
 
@@ -44,6 +45,7 @@ def carve(
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # [V, 3]
     alive = np.arange(len(grid))
     misses = np.zeros(len(grid), np.int32)
+    seen = np.zeros(len(grid), np.int32)
     for cam, mask in zip(cameras, _prepare_masks(masks, dilate_px), strict=True):
         pts = grid[alive]
         uv, z = cam.project(pts)
@@ -56,9 +58,12 @@ def carve(
         fg[inside] = mask[row[inside], col[inside]]
         miss = inside & ~fg
         misses[alive[miss]] += 1
+        seen[alive[inside]] += 1
         alive = alive[misses[alive] <= tolerance]
         if len(alive) == 0:
             break
+    # space that most views do not see at all is not the object (nothing bounds it there).
+    alive = alive[seen[alive] >= max(1, int(np.ceil(min_seen_fraction * len(cameras))))]
     occ = np.zeros(len(grid), bool)
     occ[alive] = True
     return occ.reshape(dims), origin, voxel
