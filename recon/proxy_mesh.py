@@ -22,8 +22,15 @@ def fuse_tsdf(
     voxel_size: float = 1 / 128,
     trunc_voxels: float = 4.0,
 ):
-    """TSDF-fuses float camera-z depth maps (run units) -> legacy o3d TriangleMesh."""
+    """TSDF-fuses float camera-z depth maps (run units) -> legacy o3d TriangleMesh.
+
+    The voxel is at least 1.5 pixel footprints at the object (distance to the origin / fx): finer
+    voxels than the depth samples leave the fused surface full of holes.
+    """
     import open3d as o3d
+
+    footprint = float(np.median([np.linalg.norm(c.center) / c.fx for c in cameras]))
+    voxel_size = max(voxel_size, 1.5 * footprint)
 
     device = o3d.core.Device("CPU:0")
     grid = o3d.t.geometry.VoxelBlockGrid(
