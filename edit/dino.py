@@ -576,6 +576,22 @@ def sample_features(
     return out[0] if squeeze and out.shape[0] == 1 else out
 
 
+def pca_basis(
+    features: torch.Tensor, dim: int, max_samples: int = 100_000, seed: int = 0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """PCA of dense features [N, C, h, w] (e.g. from `extract`): mean [C], components [dim, C].
+
+    Project with `(f - mean) @ components.T` to distil fewer channels into a feature field.
+    """
+    flat = features.permute(0, 2, 3, 1).reshape(-1, features.shape[1]).float()  # [M, C]
+    if len(flat) > max_samples:
+        g = torch.Generator().manual_seed(seed)
+        flat = flat[torch.randperm(len(flat), generator=g)[:max_samples]]
+    mean = flat.mean(0)
+    _, _, v = torch.linalg.svd(flat - mean, full_matrices=False)  # v: [C, C]
+    return mean, v[:dim]
+
+
 def load_dino(
     device: torch.device | None = None,
     checkpoint: str | os.PathLike | None = None,

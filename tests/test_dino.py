@@ -184,3 +184,15 @@ def test_extract_fixed_grid_and_sample_features(dino):
     torch.testing.assert_close(s[:, 0], torch.tensor([0.0, 5.0, 0.5, 0.0]))
     sb = D.sample_features(f.expand(2, 1, 2, 3), px[None].expand(2, -1, -1), (20, 30))
     assert sb.shape == (2, 4, 1)
+
+
+def test_pca_basis_recovers_a_plane():
+    g = torch.Generator().manual_seed(0)
+    coeff = torch.randn(2, 6, 5, 2, generator=g) * torch.tensor([3.0, 1.0])  # [N, h, w, 2]
+    basis = torch.linalg.qr(torch.randn(8, 2, generator=g))[0].T  # [2, 8] orthonormal rows
+    feats = (coeff @ basis + 5.0).permute(0, 3, 1, 2)  # [2, 8, 6, 5]
+    mean, comps = D.pca_basis(feats, 2)
+    torch.testing.assert_close(mean, feats.mean((0, 2, 3)))
+    assert comps.shape == (2, 8)
+    # The components span the plane: projecting the basis onto them keeps its length.
+    torch.testing.assert_close((basis @ comps.T).norm(dim=1), torch.ones(2), atol=1e-4, rtol=0)
