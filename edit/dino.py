@@ -390,6 +390,13 @@ def load_backbone(
         path = Path(checkpoint)
         if not path.is_file():
             raise SineError(f"DINO checkpoint {path} does not exist")
+        with open(path, "rb") as fh:
+            magic = fh.read(4)
+        if path.suffix != ".safetensors" and not (magic.startswith(b"PK") or magic[:1] == b"\x80"):
+            raise SineError(
+                f"{path} is not a torch checkpoint (neither a zip nor a pickle file); expected "
+                "e.g. dino_deitsmall16_pretrain.pth, dinov2_vits14_pretrain.pth or .safetensors"
+            )
         try:
             if path.suffix == ".safetensors":
                 from safetensors.torch import load_file
@@ -398,7 +405,13 @@ def load_backbone(
             else:
                 raw = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as exc:
-            raise SineError(f"cannot read DINO checkpoint {path}: {exc}") from exc
+            why = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:160]
+            if "weights_only" in str(exc) or "Weights only" in str(exc):
+                why = "it holds Python objects besides tensors, which are not unpickled (unsafe)"
+            raise SineError(
+                f"cannot read DINO checkpoint {path}: {why}; use the backbone-only state dict "
+                "(e.g. dino_deitsmall16_pretrain.pth, dinov2_vits14_pretrain.pth) or .safetensors"
+            ) from exc
         sd = _unwrap(raw)
         interp, name = "offset", path.stem
         if "embeddings.patch_embeddings.projection.weight" in sd:

@@ -140,6 +140,9 @@ def test_official_dino_layout_loads_and_runs(tmp_path):
 def test_garbage_and_mismatched_checkpoints_raise(tmp_path):
     garbage = tmp_path / "garbage.pth"
     garbage.write_bytes(b"this is not a checkpoint" * 10)
+    with pytest.raises(SineError, match="not a torch checkpoint"):
+        D.load_backbone(garbage, CPU)
+    garbage.write_bytes(b"PK\x03\x04" + b"broken zip" * 10)
     with pytest.raises(SineError, match="cannot read"):
         D.load_backbone(garbage, CPU)
     with pytest.raises(SineError, match="does not exist"):
