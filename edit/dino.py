@@ -580,7 +580,7 @@ def sample_features(
     grid = (pixels.float() * scale - 1.0)[:, :, None, :]  # [B, N, 1, 2]
     out = F.grid_sample(
         features,
-        grid.to(features.dtype),
+        grid.to(features),
         mode="bilinear",
         padding_mode="border",
         align_corners=False,
