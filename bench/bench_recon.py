@@ -71,12 +71,12 @@ def chamfer_l1(a: np.ndarray, b: np.ndarray) -> float:
     return float(0.5 * (d_ab.mean() + d_ba.mean()))
 
 
-def sample_mesh(path: Path, n: int = 200_000, seed: int = 0) -> np.ndarray:
-    import trimesh
+def sample_mesh(path: Path, n: int = 100_000, seed: int = 0) -> np.ndarray:
+    import open3d as o3d
 
-    mesh = trimesh.load(path, force="mesh", process=False)
-    points, _ = trimesh.sample.sample_surface(mesh, n, seed=seed)
-    return np.asarray(points)
+    o3d.utility.random.seed(seed)
+    mesh = o3d.io.read_triangle_mesh(str(path))
+    return np.asarray(mesh.sample_points_uniformly(n).points)
 
 
 def main() -> int:

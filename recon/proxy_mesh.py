@@ -126,11 +126,11 @@ def clean_mesh(
         pass
     if len(mesh.triangles) > target_triangles:
         mesh = basic(mesh.simplify_quadric_decimation(target_number_of_triangles=target_triangles))
-        # quadric decimation can fling a vertex far away (degenerate quadric): drop such vertices.
-        lo, hi = bounds
-        v = np.asarray(mesh.vertices)
-        mesh.remove_vertices_by_mask(np.any((v < lo) | (v > hi), axis=1))
-        mesh = basic(_keep_components(basic(mesh), min_component))
+    # hole filling and quadric decimation can fling a vertex far away: drop such vertices.
+    lo, hi = bounds
+    v = np.asarray(mesh.vertices)
+    mesh.remove_vertices_by_mask(np.any((v < lo) | (v > hi), axis=1))
+    mesh = basic(_keep_components(basic(mesh), min_component))
     if signed_volume(mesh) < 0:
         mesh.triangles = o3d.utility.Vector3iVector(np.asarray(mesh.triangles)[:, ::-1].copy())
     mesh.compute_vertex_normals()
