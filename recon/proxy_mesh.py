@@ -120,8 +120,15 @@ def clean_mesh(
         )
     mesh = basic(_keep_components(mesh, min_component))
     try:
-        tmesh = o3d.t.geometry.TriangleMesh.from_legacy(mesh).fill_holes(hole_size=hole_size)
-        mesh = basic(tmesh.to_legacy())
+        filled = (
+            o3d.t.geometry.TriangleMesh.from_legacy(mesh)
+            .fill_holes(hole_size=hole_size)
+            .to_legacy()
+        )
+        # fill_holes (Open3D 0.20) can overwrite a vertex with garbage (~1e36): then skip it.
+        old, new = np.asarray(mesh.vertices), np.asarray(filled.vertices)
+        if len(new) == len(old) and np.allclose(new, old):
+            mesh = basic(filled)
     except Exception:  # noqa: BLE001 - hole filling is best effort
         pass
     if len(mesh.triangles) > target_triangles:
