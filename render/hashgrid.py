@@ -8,8 +8,8 @@ gradients flow both to the table and to the input positions (needed when a defor
 feeds the template).
 
 Variants (for speed, measured in bench/bench_hashgrid.py):
-- `gather="fused"`: a custom autograd function, gather forward and `index_add_` backward
-  (the default and fastest on CPU);
+- `gather="fused"`: the whole encoding as one custom autograd function (gather forward,
+  `index_add_` backward, analytic position gradient) -- the default and fastest on CPU;
 - `gather="index"`: `table[idx]` (autograd backward = index_put/accumulate);
 - `gather="embedding"`: `torch.nn.functional.embedding` (autograd's dense backward);
 - `sparse=True`: embedding with sparse gradients, to be stepped with `torch.optim.SparseAdam`;
@@ -28,31 +28,52 @@ from torch import nn
 PRIMES = (1, 2654435761, 805459861)
 
 
-class _InterpGather(torch.autograd.Function):
-    """out[n, l] = sum_c w[n, l, c] * table[idx[n, l, c]], with a scatter-add backward.
+class _HashEncode(torch.autograd.Function):
+    """The whole encoding as one autograd node: x01 [N, 3], table [T, F] -> [N, L, F].
 
-    `index_add_` is ~2x faster on CPU than autograd's `embedding_dense_backward`, and the
-    gathered rows are recomputed in backward (only when the weights need a gradient).
+    Forward builds rows and trilinear weights without an autograd graph; backward scatters
+    into the table with `index_add_` (~2x faster on CPU than `embedding_dense_backward`) and,
+    only when the positions need a gradient, differentiates the trilinear weights analytically.
     """
 
     @staticmethod
-    def forward(ctx, table, idx, w):  # [T, F], [N, L, 8] int64, [N, L, 8]
-        feats = table.index_select(0, idx.reshape(-1)).view(*idx.shape, table.shape[1])
-        ctx.save_for_backward(table, idx, w)
-        return (feats * w[..., None]).sum(dim=2)  # [N, L, F]
+    def forward(ctx, x01, table, grid):
+        res = grid._res.to(x01.dtype)  # [L]
+        pos = x01[:, None, :] * res[None, :, None]  # [N, L, 3]
+        cell0 = torch.floor(pos).clamp_max_(res[None, :, None] - 1)
+        frac = pos - cell0  # [N, L, 3]
+        idx = grid._all_indices(cell0.long())  # [N, L, 8]
+        wx, wy, wz = (torch.stack([1 - frac[..., k], frac[..., k]], dim=-1) for k in range(3))
+        w = (wz[:, :, :, None, None] * wy[:, :, None, :, None] * wx[:, :, None, None, :]).view(
+            idx.shape
+        )  # [N, L, 8]
+        n, n_lev, n_feat = idx.shape[0], idx.shape[1], table.shape[1]
+        feats = table.index_select(0, idx.view(-1)).view(n * n_lev, 8, n_feat)
+        out = torch.bmm(w.view(n * n_lev, 1, 8), feats).view(n, n_lev, n_feat)
+        ctx.save_for_backward(table, idx, w, frac, res)
+        return out
 
     @staticmethod
     def backward(ctx, grad_out):  # [N, L, F]
-        table, idx, w = ctx.saved_tensors
-        grad_table = grad_w = None
-        g = grad_out[:, :, None, :]  # [N, L, 1, F]
+        table, idx, w, frac, res = ctx.saved_tensors
+        n, n_lev, n_feat = grad_out.shape
+        grad_x = grad_table = None
+        if ctx.needs_input_grad[1]:
+            values = (w[..., None] * grad_out[:, :, None, :]).view(-1, n_feat)  # [N*L*8, F]
+            grad_table = torch.zeros_like(table).index_add_(0, idx.view(-1), values)
         if ctx.needs_input_grad[0]:
-            values = (w[..., None] * g).reshape(-1, table.shape[1])  # [N*L*8, F]
-            grad_table = torch.zeros_like(table).index_add_(0, idx.reshape(-1), values)
-        if ctx.needs_input_grad[2]:
-            feats = table.index_select(0, idx.reshape(-1)).view(*idx.shape, table.shape[1])
-            grad_w = (feats * g).sum(dim=-1)  # [N, L, 8]
-        return grad_table, None, grad_w
+            feats = table.index_select(0, idx.view(-1)).view(n * n_lev, 8, n_feat)
+            s = torch.bmm(feats, grad_out.reshape(n * n_lev, n_feat, 1))
+            s = s.view(n, n_lev, 2, 2, 2)  # d out / d w, corners as [z, y, x]
+            wx, wy, wz = (torch.stack([1 - frac[..., k], frac[..., k]], dim=-1) for k in range(3))
+            sx = s[..., 1] - s[..., 0]  # [N, L, z, y]
+            sy = s[:, :, :, 1, :] - s[:, :, :, 0, :]  # [N, L, z, x]
+            sz = s[:, :, 1] - s[:, :, 0]  # [N, L, y, x]
+            gx = (sx * wz[..., :, None] * wy[..., None, :]).sum((-1, -2))
+            gy = (sy * wz[..., :, None] * wx[..., None, :]).sum((-1, -2))
+            gz = (sz * wy[..., :, None] * wx[..., None, :]).sum((-1, -2))
+            grad_x = (torch.stack([gx, gy, gz], dim=-1) * res[None, :, None]).sum(1)  # [N, 3]
+        return grad_x, grad_table, None
 
 
 @dataclass
@@ -155,10 +176,20 @@ class HashGrid(nn.Module):
             idx = (idx & (2**self.cfg.log2_table - 1)) + offsets
         return idx.view(n, n_lev, 8)
 
+    def _all_indices(self, cell0: torch.Tensor) -> torch.Tensor:
+        """Lower cell corners of every level [N, L, 3] -> rows [N, L, 8]."""
+        parts = []
+        if self.n_dense:
+            parts.append(
+                self._level_indices(cell0[:, : self.n_dense], slice(0, self.n_dense), True)
+            )
+        if self.n_dense < self.cfg.n_levels:
+            hashed = slice(self.n_dense, self.cfg.n_levels)
+            parts.append(self._level_indices(cell0[:, hashed], hashed, False))
+        return torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]
+
     def _lookup(self, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
         """Rows [N, L', 8] and weights [N, L', 8] -> interpolated features [N, L', F]."""
-        if self.gather == "fused" and not self.sparse:
-            return _InterpGather.apply(self.table, idx, w)
         if self.gather == "index" and not self.sparse:
             feats = self.table[idx]
         else:
@@ -192,6 +223,9 @@ class HashGrid(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x [N, 3] world points in [-bound, bound]^3 -> features [N, L * F]."""
         x01 = ((x + self.bound) / (2 * self.bound)).clamp(0.0, 1.0)  # [N, 3]
+        if self.gather == "fused" and not self.sparse and self.dense_mode == "gather":
+            feats = _HashEncode.apply(x01, self.table, self)  # [N, L, F]
+            return feats.reshape(x.shape[0], self.output_dim)
         parts = []
         if self.n_dense:
             if self.dense_mode == "grid_sample":

@@ -1,0 +1,466 @@
+"""Fit the template radiance field on a run's captures (`sine fit RUN`).
+
+Reads images/, masks/ (optional), cameras.json (split train/test) and proxy_mesh.ply; casts every
+training ray once against the proxy (and its inflated copy) and trains only on the rays that hit
+it (the others are background and need no field). Writes into RUN/template/:
+
+    checkpoint.pt      latest training state (field, background, optimizer, scheduler, step,
+                       RNG states); written atomically every `checkpoint_every` steps; a re-run
+                       resumes from it (`--force` starts over)
+    field.pt           the final field for later stages (`load_template`)
+    metrics.json       held-out PSNR/SSIM (flat keys: heldout_psnr, heldout_ssim, ...)
+    previews/NAME.png  held-out renders (left) next to the ground truth (right)
+    log.json           loss / PSNR every `log_every` steps
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from recon.rundir import RunDir
+from render.configs import option, to_dict
+from render.errors import SineError
+from render.hashgrid import HashGridConfig
+from render.io import atomic_path, read_image, read_json, read_mask, write_image, write_json
+from render.renderer import render_image, render_rays
+from render.sampler import BandSampler, ProxyRaycaster, RayHits, UniformSampler
+from render.template_field import Background, TemplateField, TemplateFieldConfig
+
+
+@dataclass
+class FitConfig:
+    """Options of `sine fit` (template radiance field)."""
+
+    iterations: int = option(1500, "training steps")
+    batch_rays: int = option(2048, "rays per step (only rays that hit the inflated proxy)")
+    lr_grid: float = option(2e-2, "Adam learning rate of the hash table")
+    lr_mlp: float = option(5e-3, "Adam learning rate of the MLP heads")
+    lr_final_factor: float = option(0.1, "learning rates decay exponentially to this factor")
+    log2_table: int = option(15, "log2 of the hash-table rows per level (CPU: 14-17)")
+    levels: int = option(16, "hash-grid levels")
+    max_resolution: int = option(512, "finest hash-grid resolution over [-1, 1]^3")
+    sampler: str = option(
+        "band", "ray sampler: proxy band or the paper's uniform 64+128", choices=["band", "uniform"]
+    )
+    band_samples: int = option(16, "samples in the band [t_hit - d, t_hit + d] (band sampler)")
+    coarse_samples: int = option(
+        4,
+        "coarse samples over the ray-in-sphere interval (band) "
+        "or stratified coarse samples (uniform)",
+    )
+    importance_samples: int = option(128, "importance samples (uniform sampler only)")
+    band_width: float = option(0.04, "band half-width d and proxy inflation, in run units")
+    uniform_coarse: int = option(64, "stratified coarse samples (uniform sampler)")
+    mask_weight: float = option(0.1, "weight of the opacity-vs-mask BCE loss (0: off)")
+    background: str = option(
+        "auto",
+        "background colour: auto (from masks), white, black, learn",
+        choices=["auto", "white", "black", "learn"],
+    )
+    checkpoint_every: int = option(250, "steps between checkpoints")
+    log_every: int = option(50, "steps between log entries")
+    previews: int = option(4, "held-out views written as previews (0: none)")
+    seed: int = option(0, "random seed (ray batches, jitter, initialisation)")
+    device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
+    threads: int = option(0, "torch CPU threads (0: torch's default)")
+    eval_chunk: int = option(16384, "rays per chunk when rendering held-out views")
+
+
+# ---- data ---------------------------------------------------------------------------------
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise SineError("--device cuda requested but torch sees no CUDA device; use --device cpu")
+    return torch.device(name)
+
+
+def load_views(run: RunDir, split: str) -> list[tuple]:
+    """[(camera, image [H, W, 3], mask [H, W] bool or None)] for the frames of `split`."""
+    cams = run.load_cameras().frames
+    out = []
+    for cam in cams:
+        if cam.split != split:
+            continue
+        path = run.image_path(cam.name)
+        if not path.is_file():
+            raise SineError(f"{path} is missing (cameras.json names it); re-run `sine ingest`")
+        image = read_image(path)
+        if image.shape[:2] != (cam.height, cam.width):
+            cam = cam.resized(image.shape[1], image.shape[0])
+        mpath = run.mask_path(cam.name)
+        mask = read_mask(mpath) if mpath.is_file() else None
+        out.append((cam, image, mask))
+    return out
+
+
+def background_color(views, mode: str) -> tuple[np.ndarray, bool]:
+    """(colour [3], learnable) from the mode and, for auto, the masked-out pixels."""
+    if mode == "white":
+        return np.ones(3, np.float32), False
+    if mode == "black":
+        return np.zeros(3, np.float32), False
+    pixels = [img[~m] for _, img, m in views if m is not None and (~m).any()]
+    if not pixels:  # no masks: learn it, starting from the image borders
+        border = np.concatenate(
+            [np.concatenate([img[0], img[-1], img[:, 0], img[:, -1]]) for _, img, _ in views]
+        )
+        return np.median(border, axis=0).astype(np.float32), True
+    bg = np.concatenate(pixels)
+    median = np.median(bg, axis=0).astype(np.float32)
+    spread = float(np.abs(bg - median).mean())
+    return median, mode == "learn" or spread > 0.02
+
+
+@dataclass
+class RayPool:
+    """Every training ray that needs the field, cast once against the proxy."""
+
+    origins: torch.Tensor  # [P, 3]
+    dirs: torch.Tensor  # [P, 3]
+    rgb: torch.Tensor  # [P, 3]
+    mask: torch.Tensor  # [P] float (1 = foreground; 1 everywhere without masks)
+    hits: RayHits  # [P]
+    n_total: int  # all training rays, hit or not
+    has_masks: bool
+    miss_rgb: torch.Tensor  # [Q, 3] colours of rays that miss (for a learned background)
+
+
+def build_ray_pool(views, sampler, device: torch.device) -> RayPool:
+    o_all, d_all, c_all, m_all, h_all, miss = [], [], [], [], [], []
+    n_total = 0
+    has_masks = all(m is not None for _, _, m in views)
+    for cam, image, mask in views:
+        o, d = cam.rays()
+        o, d = torch.from_numpy(o).to(device), torch.from_numpy(d).to(device)
+        hits = sampler.cast(o, d)
+        hit = hits.hit
+        rgb = torch.from_numpy(image.reshape(-1, 3)).to(device)
+        m = torch.from_numpy(mask.reshape(-1)).float().to(device) if mask is not None else None
+        n_total += len(o)
+        o_all.append(o[hit])
+        d_all.append(d[hit])
+        c_all.append(rgb[hit])
+        m_all.append(m[hit] if m is not None else torch.ones(int(hit.sum()), device=device))
+        h_all.append(hits[hit])
+        miss.append(rgb[~hit][:: max(1, int((~hit).sum()) // 2000 + 1)])
+    hits = RayHits(
+        *(torch.cat([getattr(h, k) for h in h_all]) for k in ("t_hit", "t_inflated", "near", "far"))
+    )
+    pool = RayPool(
+        torch.cat(o_all),
+        torch.cat(d_all),
+        torch.cat(c_all),
+        torch.cat(m_all),
+        hits,
+        n_total,
+        has_masks,
+        torch.cat(miss),
+    )
+    if len(pool.origins) == 0:
+        raise SineError(
+            "no training ray hits the proxy mesh: check proxy_mesh.ply and cameras.json"
+        )
+    return pool
+
+
+def make_sampler(cfg: FitConfig, run: RunDir):
+    if cfg.sampler == "uniform":
+        return UniformSampler(cfg.uniform_coarse, cfg.importance_samples)
+    import open3d as o3d
+
+    mesh = o3d.io.read_triangle_mesh(str(run.proxy_mesh))
+    if len(mesh.triangles) == 0:
+        raise SineError(f"{run.proxy_mesh} has no triangles; re-run `sine recon`")
+    return BandSampler(
+        ProxyRaycaster(mesh, inflate=cfg.band_width), cfg.band_samples, cfg.coarse_samples
+    )
+
+
+def field_config(cfg: FitConfig) -> TemplateFieldConfig:
+    grid = HashGridConfig(
+        n_levels=cfg.levels, log2_table=cfg.log2_table, max_resolution=cfg.max_resolution
+    )
+    return TemplateFieldConfig(grid=grid)
+
+
+def field_config_from_dict(d: dict) -> TemplateFieldConfig:
+    d = dict(d)
+    grid = HashGridConfig(**d.pop("grid"))
+    names = {f.name for f in dataclasses.fields(TemplateFieldConfig)}
+    return TemplateFieldConfig(grid=grid, **{k: v for k, v in d.items() if k in names})
+
+
+def load_template(run_dir, device: torch.device | None = None) -> tuple[TemplateField, Background]:
+    """The fitted field and background of a run (RUN/template/field.pt)."""
+    run = RunDir(run_dir)
+    path = run.template / "field.pt"
+    if not path.is_file():
+        raise SineError(f"{path} not found; run `sine fit {run.root}` first")
+    data = torch.load(path, map_location="cpu", weights_only=False)
+    field = TemplateField(field_config_from_dict(data["field_config"]))
+    field.load_state_dict(data["field"])
+    bg = Background(data["background_color"], learnable=False)
+    device = device or torch.device("cpu")
+    return field.to(device).eval(), bg.to(device)
+
+
+# ---- metrics ------------------------------------------------------------------------------
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
+    return 10.0 * math.log10(1.0 / max(mse, 1e-12))
+
+
+def evaluate(
+    field, background, sampler, views, device, chunk=16384, preview_dir=None, n_previews=0
+):
+    """Renders held-out views -> (metrics dict, per-view PSNRs)."""
+    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+    field.eval()
+    psnrs, ssims, samples = [], [], []
+    for i, (cam, image, _) in enumerate(views):
+        out = render_image(cam, field, sampler, background, chunk=chunk, device=device)
+        pred = np.clip(out["rgb"], 0.0, 1.0)
+        psnrs.append(float(peak_signal_noise_ratio(image, pred, data_range=1.0)))
+        ssims.append(float(structural_similarity(image, pred, channel_axis=2, data_range=1.0)))
+        samples.append(float(out["samples_per_pixel"]))
+        if preview_dir is not None and i < n_previews:
+            write_image(
+                Path(preview_dir) / (Path(cam.name).stem + ".png"),
+                np.concatenate([pred, image], axis=1),
+            )
+    field.train()
+    if not psnrs:
+        return {}
+    return {
+        "heldout_psnr": float(np.mean(psnrs)),
+        "heldout_ssim": float(np.mean(ssims)),
+        "heldout_views": len(psnrs),
+        "heldout_psnr_min": float(np.min(psnrs)),
+        "heldout_samples_per_pixel": float(np.mean(samples)),
+    }
+
+
+# ---- training -----------------------------------------------------------------------------
+def _checkpoint_path(run: RunDir) -> Path:
+    return run.template / "checkpoint.pt"
+
+
+# Settings that do not change the result: a checkpoint made with other values still resumes.
+_RUNTIME_KEYS = ("device", "threads", "eval_chunk", "previews", "log_every", "checkpoint_every")
+
+
+def _same_settings(a: dict, b: dict) -> bool:
+    strip = lambda d: {k: v for k, v in d.items() if k not in _RUNTIME_KEYS}  # noqa: E731
+    return strip(a) == strip(b)
+
+
+def _save_checkpoint(run: RunDir, state: dict) -> None:
+    with atomic_path(_checkpoint_path(run)) as tmp:
+        torch.save(state, tmp)
+
+
+def fit_template(
+    run_dir,
+    cfg: FitConfig | None = None,
+    force: bool = False,
+    progress: bool = True,
+    stop_at: int | None = None,
+) -> dict:
+    """Trains (or resumes) the template of `run_dir`; returns the metrics dict.
+
+    `stop_at` ends this call after that step, with a checkpoint (as if interrupted).
+    """
+    cfg = cfg or FitConfig()
+    run = RunDir(run_dir)
+    run.require("cameras")
+    if not run.proxy_mesh.is_file() and cfg.sampler == "band":
+        raise SineError(f"{run.root} has no proxy_mesh.ply yet; run `sine recon {run.root}` first")
+    device = pick_device(cfg.device)
+    threads_before = torch.get_num_threads()
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    try:
+        return _fit(run, cfg, device, force, progress, stop_at)
+    finally:
+        torch.set_num_threads(threads_before)
+
+
+def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_at) -> dict:
+    t_start = time.perf_counter()
+
+    train_views = load_views(run, "train")
+    test_views = load_views(run, "test") or load_views(run, "val")
+    if not train_views:
+        raise SineError(f"{run.cameras} has no frame with split 'train'")
+    bg_color, bg_learn = background_color(train_views, cfg.background)
+    sampler = make_sampler(cfg, run)
+    pool = build_ray_pool(train_views, sampler, device)
+
+    torch.manual_seed(cfg.seed)
+    field = TemplateField(field_config(cfg)).to(device)
+    background = Background(bg_color, learnable=bg_learn).to(device)
+    groups = field.param_groups(cfg.lr_grid, cfg.lr_mlp)
+    if bg_learn:
+        groups.append(
+            {"params": list(background.parameters()), "lr": cfg.lr_mlp, "name": "background"}
+        )
+    optimizer = torch.optim.Adam(groups, betas=(0.9, 0.99))
+    decay = cfg.lr_final_factor ** (1.0 / max(cfg.iterations, 1))
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: decay**step)
+    generator = torch.Generator().manual_seed(cfg.seed)
+    step, log, train_seconds = 0, [], 0.0
+
+    ckpt_path = _checkpoint_path(run)
+    metrics_path = run.template / "metrics.json"
+    if force:
+        for p in (ckpt_path, metrics_path, run.template / "field.pt"):
+            p.unlink(missing_ok=True)
+    elif metrics_path.is_file() and (run.template / "field.pt").is_file() and ckpt_path.is_file():
+        done = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        if done["step"] >= cfg.iterations and _same_settings(done["config"], to_dict(cfg)):
+            return read_json(metrics_path)  # already fitted with these settings
+    if ckpt_path.exists():
+        state = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        if _same_settings(state["config"], to_dict(cfg)) is False:
+            raise SineError(
+                f"{ckpt_path} was made with other settings; re-run with --force to start over"
+            )
+        field.load_state_dict(state["field"])
+        background.load_state_dict(state["background"])
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        generator.set_state(state["generator"])
+        torch.set_rng_state(state["torch_rng"])
+        step, log, train_seconds = state["step"], state["log"], state["train_seconds"]
+
+    def checkpoint():
+        _save_checkpoint(
+            run,
+            {
+                "config": to_dict(cfg),
+                "field": field.state_dict(),
+                "background": background.state_dict(),
+                "optimizer": optimizer.state_dict(),
+                "scheduler": scheduler.state_dict(),
+                "generator": generator.get_state(),
+                "torch_rng": torch.get_rng_state(),
+                "step": step,
+                "log": log,
+                "train_seconds": train_seconds,
+            },
+        )
+
+    n_pool = len(pool.origins)
+    last = min(cfg.iterations, stop_at) if stop_at is not None else cfg.iterations
+    bar = tqdm(total=cfg.iterations, initial=step, disable=not progress, desc="fit", unit="step")
+    field.train()
+    rays_done, t_window = 0, time.perf_counter()
+    while step < last:
+        t0 = time.perf_counter()
+        idx = torch.randint(n_pool, (cfg.batch_rays,), generator=generator).to(device)
+        out = render_rays(
+            field,
+            pool.origins[idx],
+            pool.dirs[idx],
+            sampler,
+            background,
+            hits=pool.hits[idx],
+            perturb=True,
+            generator=generator,
+        )
+        mse = torch.mean((out["rgb"] - pool.rgb[idx]) ** 2)
+        loss = mse
+        if cfg.mask_weight > 0 and pool.has_masks:
+            acc = out["opacity"].clamp(1e-5, 1 - 1e-5)
+            loss = loss + cfg.mask_weight * torch.nn.functional.binary_cross_entropy(
+                acc, pool.mask[idx]
+            )
+        if background.learnable and len(pool.miss_rgb):
+            j = torch.randint(len(pool.miss_rgb), (256,), generator=generator).to(device)
+            loss = loss + torch.mean((background()[None] - pool.miss_rgb[j]) ** 2)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        scheduler.step()
+        step += 1
+        train_seconds += time.perf_counter() - t0
+        rays_done += cfg.batch_rays
+        train_psnr = -10.0 * math.log10(max(mse.item(), 1e-12))
+        if step % cfg.log_every == 0 or step in (1, cfg.iterations):
+            log.append(
+                {
+                    "step": step,
+                    "loss": float(loss.item()),
+                    "psnr": train_psnr,
+                    "seconds": train_seconds,
+                }
+            )
+        if step % 10 == 0 or step == last:
+            now = time.perf_counter()
+            bar.set_postfix(
+                loss=f"{loss.item():.4f}",
+                psnr=f"{train_psnr:.2f}",
+                rays_s=f"{rays_done / max(now - t_window, 1e-9):.0f}",
+            )
+            rays_done, t_window = 0, now
+        bar.update(1)
+        if step % cfg.checkpoint_every == 0 or step == last:
+            checkpoint()
+    bar.close()
+
+    if step < cfg.iterations:  # stopped early on purpose
+        return {"step": step}
+
+    field_path = run.template / "field.pt"
+    with atomic_path(field_path) as tmp:
+        torch.save(
+            {
+                "field_config": to_dict(field.cfg),
+                "field": field.state_dict(),
+                "background_color": background().detach().cpu().tolist(),
+                "fit_config": to_dict(cfg),
+            },
+            tmp,
+        )
+    t_eval = time.perf_counter()
+    metrics = evaluate(
+        field,
+        background,
+        sampler,
+        test_views,
+        device,
+        cfg.eval_chunk,
+        run.template / "previews",
+        cfg.previews,
+    )
+    metrics.update(
+        {
+            "iterations": step,
+            "train_seconds": train_seconds,
+            "eval_seconds": time.perf_counter() - t_eval,
+            "total_seconds": time.perf_counter() - t_start,
+            "rays_per_second": step * cfg.batch_rays / max(train_seconds, 1e-9),
+            "samples_per_ray": sampler.samples_per_ray,
+            "sampler": cfg.sampler,
+            "train_rays_needing_field": len(pool.origins),
+            "train_rays_total": pool.n_total,
+            "final_train_psnr": log[-1]["psnr"] if log else None,
+            "background_color": background().detach().cpu().tolist(),
+            "background_learned": bool(background.learnable),
+            "device": str(device),
+        }
+    )
+    write_json(run.template / "metrics.json", metrics)
+    write_json(run.template / "log.json", log)
+    run.append_config("fit", cfg)
+    return metrics
