@@ -7,7 +7,13 @@ builds the parser, picks the device/thread settings and turns user errors into o
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+
+# OpenMP threads that sleep instead of spinning while waiting: on a small, shared CPU (2 cores,
+# other processes running) spinning threads make torch ops 3-5x slower (measured in
+# bench/RESULTS.md, "Hash grid"). Must be set before torch is imported; the user's value wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 def build_parser() -> argparse.ArgumentParser:
