@@ -9,6 +9,10 @@ dense levels via grid_sample, and optionally torch.compile (slow first call).
 
 from __future__ import annotations
 
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch: see sine_cli.py
+
 import argparse
 import time
 

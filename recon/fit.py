@@ -39,12 +39,12 @@ from render.template_field import Background, TemplateField, TemplateFieldConfig
 class FitConfig:
     """Options of `sine fit` (template radiance field)."""
 
-    iterations: int = option(1500, "training steps")
+    iterations: int = option(300, "training steps")
     batch_rays: int = option(2048, "rays per step (only rays that hit the inflated proxy)")
     lr_grid: float = option(2e-2, "Adam learning rate of the hash table")
-    lr_mlp: float = option(5e-3, "Adam learning rate of the MLP heads")
+    lr_mlp: float = option(1e-2, "Adam learning rate of the MLP heads")
     lr_final_factor: float = option(0.1, "learning rates decay exponentially to this factor")
-    log2_table: int = option(15, "log2 of the hash-table rows per level (CPU: 14-17)")
+    log2_table: int = option(17, "log2 of the hash-table rows per level (CPU: 14-17)")
     levels: int = option(16, "hash-grid levels")
     max_resolution: int = option(512, "finest hash-grid resolution over [-1, 1]^3")
     sampler: str = option(
@@ -71,6 +71,7 @@ class FitConfig:
     seed: int = option(0, "random seed (ray batches, jitter, initialisation)")
     device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
     threads: int = option(0, "torch CPU threads (0: torch's default)")
+    eval_views: int = option(0, "held-out views to render for the metrics (0: all)")
     eval_chunk: int = option(16384, "rays per chunk when rendering held-out views")
 
 
@@ -226,13 +227,15 @@ def evaluate(
     from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
     field.eval()
-    psnrs, ssims, samples = [], [], []
-    for i, (cam, image, _) in enumerate(views):
+    psnrs, ssims, samples, fg_psnrs = [], [], [], []
+    for i, (cam, image, mask) in enumerate(views):
         out = render_image(cam, field, sampler, background, chunk=chunk, device=device)
         pred = np.clip(out["rgb"], 0.0, 1.0)
         psnrs.append(float(peak_signal_noise_ratio(image, pred, data_range=1.0)))
         ssims.append(float(structural_similarity(image, pred, channel_axis=2, data_range=1.0)))
         samples.append(float(out["samples_per_pixel"]))
+        if mask is not None and mask.any():  # the object only: no free points for the background
+            fg_psnrs.append(psnr(pred[mask], image[mask]))
         if preview_dir is not None and i < n_previews:
             write_image(
                 Path(preview_dir) / (Path(cam.name).stem + ".png"),
@@ -241,7 +244,9 @@ def evaluate(
     field.train()
     if not psnrs:
         return {}
+    fg = {"heldout_psnr_foreground": float(np.mean(fg_psnrs))} if fg_psnrs else {}
     return {
+        **fg,
         "heldout_psnr": float(np.mean(psnrs)),
         "heldout_ssim": float(np.mean(ssims)),
         "heldout_views": len(psnrs),
@@ -256,7 +261,15 @@ def _checkpoint_path(run: RunDir) -> Path:
 
 
 # Settings that do not change the result: a checkpoint made with other values still resumes.
-_RUNTIME_KEYS = ("device", "threads", "eval_chunk", "previews", "log_every", "checkpoint_every")
+_RUNTIME_KEYS = (
+    "device",
+    "threads",
+    "eval_chunk",
+    "eval_views",
+    "previews",
+    "log_every",
+    "checkpoint_every",
+)
 
 
 def _same_settings(a: dict, b: dict) -> bool:
@@ -300,6 +313,8 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
 
     train_views = load_views(run, "train")
     test_views = load_views(run, "test") or load_views(run, "val")
+    if cfg.eval_views > 0:
+        test_views = test_views[: cfg.eval_views]
     if not train_views:
         raise SineError(f"{run.cameras} has no frame with split 'train'")
     bg_color, bg_learn = background_color(train_views, cfg.background)
