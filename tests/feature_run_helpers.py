@@ -1,0 +1,53 @@
+"""A tiny run directory with a fitted template and a distilled feature field (shared by tests).
+
+The procedural toycar from `sine synth` (8 views, 64x64, ground-truth part labels) is used as the
+run directory directly (known cameras, the ground-truth mesh as proxy), so no reconstruction is
+needed. Built once per test session under pytest's base temp folder.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+TINY_FIT = dict(
+    iterations=40,
+    batch_rays=384,
+    log2_table=12,
+    levels=8,
+    max_resolution=128,
+    band_samples=8,
+    coarse_samples=2,
+    previews=0,
+    checkpoint_every=1000,
+)
+TINY_FEATURES = dict(
+    iterations=60,
+    batch_rays=512,
+    lr_grid=0.1,
+    lr_mlp=0.02,
+    log2_table=12,
+    levels=8,
+    max_resolution=128,
+    previews=1,
+    log_every=10,
+    checkpoint_every=1000,
+)
+
+
+def tiny_feature_run(tmp_path_factory, features: bool = True) -> Path:
+    """Path of the shared tiny run (synth -> fit [-> features]); built on first use."""
+    from recon import synth
+    from recon.features import FeaturesConfig, distill_features
+    from recon.fit import FitConfig, fit_template
+
+    root = tmp_path_factory.getbasetemp() / "tiny_feature_run"
+    if not (root / "template" / "field.pt").is_file():
+        shutil.rmtree(root, ignore_errors=True)
+        cfg = synth.SynthConfig(out=root, procedural="toycar", views=8, width=64, height=64)
+        synth.synthesize(cfg, progress=False)
+        shutil.copy(root / "mesh.ply", root / "proxy_mesh.ply")
+        fit_template(root, FitConfig(**TINY_FIT), progress=False)
+    if features and not (root / "features" / "field.pt").is_file():
+        distill_features(root, FeaturesConfig(**TINY_FEATURES), progress=False)
+    return root

@@ -1,0 +1,155 @@
+"""DINO feature field: PCA basis, bilinear targets, rendering, distillation, resume."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+import torch
+from feature_run_helpers import TINY_FEATURES, tiny_feature_run
+
+from edit.dino import sample_features
+from recon.features import (
+    FeaturesConfig,
+    bilinear_lookup,
+    distill_features,
+    foreground_pca,
+    load_features,
+)
+from recon.rundir import RunDir
+from render.errors import SineError
+from render.feature_field import FeatureField, FeatureFieldConfig, pca_rgb, render_feature_map
+from render.io import read_json, read_yaml
+
+
+def test_bilinear_lookup_hand_values_and_grid_sample():
+    maps = torch.tensor([[0.0, 1.0], [2.0, 3.0]])[None, :, :, None]  # [1, 2, 2, 1]
+    xy = torch.tensor([[4.0, 4.0], [2.0, 2.0], [6.0, 2.0], [0.5, 7.9]])  # image 8x8
+    got = bilinear_lookup(maps, torch.zeros(4, dtype=torch.long), xy, (8, 8))[:, 0]
+    # centre: mean of all four; the patch centres (2, 2) and (6, 2): exact values; clamped corner
+    assert got.tolist() == pytest.approx([1.5, 0.0, 1.0, 2.0])
+    g = torch.Generator().manual_seed(0)
+    maps = torch.randn(3, 5, 7, 4, generator=g)
+    view = torch.tensor([0, 2, 1, 2, 0])
+    xy = torch.rand(5, 2, generator=g) * torch.tensor([70.0, 50.0])
+    ref = torch.stack(
+        [
+            sample_features(maps[v].permute(2, 0, 1)[None], p[None], (50, 70))[0]
+            for v, p in zip(view, xy, strict=True)
+        ]
+    )
+    assert torch.allclose(bilinear_lookup(maps, view, xy, (50, 70)), ref, atol=1e-5)
+
+
+def test_pca_basis_project_decode_roundtrip():
+    g = torch.Generator().manual_seed(1)
+    basis = torch.linalg.qr(torch.randn(12, 3, generator=g)).Q.T  # [3, 12] orthonormal rows
+    coeffs = torch.randn(2, 3, 4, 5, generator=g) * 3
+    feats = torch.einsum("ncij,cd->ndij", coeffs, basis) + torch.arange(12.0)[None, :, None, None]
+    mean, comps = foreground_pca(feats, [None, None], dim=3)
+    flat = feats.permute(0, 2, 3, 1).reshape(-1, 12)
+    assert torch.allclose(mean, flat.mean(0), atol=1e-4)
+    assert torch.allclose(comps @ comps.T, torch.eye(3), atol=1e-5)
+    field = FeatureField(FeatureFieldConfig(out_dim=3, feature_dim=12))
+    field.set_basis(mean, comps)
+    assert torch.allclose(field.decode(field.project(flat)), flat, atol=1e-4)  # 3-dim data: exact
+
+
+def test_pca_rgb_range_and_background():
+    c = np.zeros((2, 2, 4), np.float32)
+    c[0, 0, :3] = [1, 2, 3]
+    mask = np.array([[True, True], [False, True]])
+    rgb = pca_rgb(c, mask, lo=[0, 0, 0], hi=[2, 2, 2])
+    assert rgb[0, 0].tolist() == [0.5, 1.0, 1.0] and rgb[1, 0].tolist() == [1.0, 1.0, 1.0]
+
+
+@pytest.fixture(scope="module")
+def run_root(tmp_path_factory):
+    return tiny_feature_run(tmp_path_factory)
+
+
+def test_distillation_reduces_loss_and_writes_outputs(run_root):
+    run = RunDir(run_root)
+    log = read_json(run.features / "log.json")
+    assert log[-1]["rel_error"] < 0.6 * log[0]["rel_error"]  # first entry after 10 steps
+    m = read_json(run.features / "metrics.json")
+    assert m["iterations"] == TINY_FEATURES["iterations"] and m["pca_dim"] == 64
+    assert m["patch_grid"] == [16, 16]  # short side 224 -> 16 patches of 14 pixels
+    assert 0.3 < m["heldout_cosine"] <= m["pca_cosine"] + 1e-3
+    assert (run.features / "dino_cache.pt").is_file() and (run.features / "field.pt").is_file()
+    assert len(list((run.features / "previews").glob("*.png"))) == 1
+    stages = [s["stage"] for s in read_yaml(run.config)["stages"]]
+    assert "features" in stages
+
+
+def test_rendered_features_beat_an_untrained_field(run_root):
+    """Rendered features of a training view are closer to its DINO features after training."""
+    template, field, sampler = load_features(run_root)
+    cams = RunDir(run_root).load_cameras().frames
+    cam = next(c for c in cams if c.split == "train")
+    cache = torch.load(RunDir(run_root).features / "dino_cache.pt", weights_only=False)
+    target = cache["features"][cache["key"]["names"].index(cam.name)].float()  # [C, h, w]
+    target = torch.nn.functional.interpolate(target[None], size=(64, 64), mode="bilinear")[0]
+    fresh = FeatureField(field.cfg)
+    fresh.set_basis(field.mean, field.components)
+
+    def cosine(f):
+        out = render_feature_map(cam, template, f, sampler)
+        fg = torch.from_numpy(out["opacity"] > 0.5)
+        pred = torch.from_numpy(out["features"]).permute(2, 0, 1)
+        return torch.nn.functional.cosine_similarity(pred[:, fg], target[:, fg], dim=0).mean()
+
+    trained, untrained = float(cosine(field)), float(cosine(fresh))
+    assert trained > untrained + 0.05 and trained > 0.6
+
+
+def test_constant_field_renders_its_constant(run_root):
+    """Opacity-normalised compositing: a constant field renders exactly that constant."""
+    template, field, sampler = load_features(run_root)
+    const = FeatureField(field.cfg)
+    with torch.no_grad():
+        const.net[-1].weight.zero_()
+        const.net[-1].bias.copy_(torch.linspace(-1, 1, field.cfg.out_dim))
+    cam = RunDir(run_root).load_cameras().frames[3]
+    out = render_feature_map(cam, template, const, sampler, decode=False)
+    fg = out["opacity"] > 0.05
+    assert fg.sum() > 50
+    np.testing.assert_allclose(
+        out["features"][fg], np.broadcast_to(np.linspace(-1, 1, 64), (fg.sum(), 64)), atol=1e-4
+    )
+    assert (out["features"][out["opacity"] < 1e-3] == 0).all()
+
+
+def test_resume_matches_uninterrupted_and_skips_when_done(run_root, tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    for d in (a, b):
+        shutil.copytree(
+            run_root, d, ignore=shutil.ignore_patterns("field.pt", "checkpoint.pt", "metrics.json")
+        )
+        shutil.copy(run_root / "template" / "field.pt", d / "template" / "field.pt")
+    cfg = FeaturesConfig(
+        **{**TINY_FEATURES, "iterations": 12, "previews": 0, "checkpoint_every": 4}
+    )
+    distill_features(a, cfg, progress=False)
+    assert distill_features(b, cfg, progress=False, stop_at=6) == {"step": 6}
+    distill_features(b, cfg, progress=False)
+    fa = torch.load(a / "features" / "field.pt", weights_only=False)["field"]
+    fb = torch.load(b / "features" / "field.pt", weights_only=False)["field"]
+    for k in fa:
+        assert torch.allclose(fa[k], fb[k], atol=1e-6), k
+    before = (a / "features" / "metrics.json").stat().st_mtime_ns
+    distill_features(a, cfg, progress=False)  # done with the same settings: skipped
+    assert (a / "features" / "metrics.json").stat().st_mtime_ns == before
+    with pytest.raises(SineError, match="other settings"):
+        distill_features(
+            b,
+            FeaturesConfig(**{**TINY_FEATURES, "iterations": 12, "dim": 8}),
+            progress=False,
+            stop_at=1,
+        )
+
+
+def test_missing_feature_field_is_a_clear_error(tmp_path):
+    with pytest.raises(SineError, match="sine features"):
+        load_features(tmp_path)
