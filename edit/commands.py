@@ -1,16 +1,11 @@
-"""`sine` subcommands of the editing side."""
+"""`sine` subcommands of the editing side: masks (semantic masks) and demo."""
 
 from __future__ import annotations
+
+from edit import demo, masks_cli
 
 
 def register(sub) -> None:
     """Adds this package's subcommands to the `sine` parser."""
-    # Each subcommand module exposes `add_parser(sub)`; they are filled in as stages land.
-    for module_name in ("edit.masks_cli",):
-        try:
-            module = __import__(module_name, fromlist=["add_parser"])
-        except ModuleNotFoundError as exc:
-            if exc.name != module_name:
-                raise
-            continue
-        module.add_parser(sub)
+    masks_cli.add_parser(sub)
+    demo.add_parser(sub)
