@@ -2,6 +2,12 @@
 
     .venv/bin/python bench/bench_recon.py RUN --gt-par ../shared/data/middlebury-templeSparseRing/templeSR_par.txt
     .venv/bin/python bench/bench_recon.py RUN --gt-cameras CAPTURE/cameras.json --gt-mesh CAPTURE/mesh.ply
+    .venv/bin/python bench/bench_recon.py --variants /tmp/bench_recon [--datasets spot temple dino]
+
+The first two forms score one finished run. `--variants OUT` runs `sine recon` (library call)
+on each dataset with each variant of the SfM/depth options into OUT/<dataset>-<variant> and
+prints one table: registered views, median rotation / centre error, proxy Chamfer-L1 (spot),
+silhouette IoU, watertightness and seconds, variants side by side.
 
 Aligns the recon's camera centres to the ground truth by a similarity (Umeyama), then prints
 per-view and median rotation error (degrees) and camera-centre error (% of the ring radius =
@@ -79,11 +85,143 @@ def sample_mesh(path: Path, n: int = 100_000, seed: int = 0) -> np.ndarray:
     return np.asarray(mesh.sample_points_uniformly(n).points)
 
 
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+# name -> (ReconConfig overrides, IngestConfig overrides); "default" = the shipped defaults.
+BEFORE = {
+    "sfm_min_object_px": 0.0,
+    "sfm_final_ba": False,
+    "sfm_peak_threshold": 0.004,
+    "sfm_threads": -1,
+}
+UPSCALE = {**BEFORE, "sfm_min_object_px": 400.0}
+PEAK = {**UPSCALE, "sfm_peak_threshold": 0.002, "sfm_threads": 1}
+VARIANTS = {
+    "before": (BEFORE, {"ignore_intrinsics": True}),
+    "+intrinsics": (BEFORE, {}),
+    "+upscale": (UPSCALE, {}),
+    "+peak.002,1thread": (PEAK, {}),
+    "+final_ba=default": ({}, {}),
+    "default-intrinsics": ({}, {"ignore_intrinsics": True}),
+    "+dsp": ({"sfm_domain_size_pooling": True}, {}),
+    "+guided": ({"sfm_guided_matching": True}, {}),
+    "default": ({}, {}),
+    "hull": ({"depth_method": "visual_hull"}, {}),
+    "hull+stereo": ({"depth_method": "visual_hull+stereo"}, {}),
+}
+DEPTH_VARIANTS = ("default", "hull", "hull+stereo")  # the ones that apply with known poses
+
+
+def datasets(out: Path) -> dict:
+    """name -> (capture, ignore_poses, GT cameras loader or None, GT mesh or None)."""
+    spot = out / "spot320"
+    if not (spot / "transforms.json").is_file():
+        from recon.synth import SynthConfig, synthesize
+
+        mesh = DATA / "meshes" / "spot" / "spot_triangulated.obj"
+        synthesize(SynthConfig(mesh=mesh, out=spot, views=36, width=320, height=240))
+    temple_par = DATA / "middlebury-templeSparseRing" / "templeSR_par.txt"
+    return {
+        "spot": (spot, True, lambda: _gt_cameras(spot / "cameras.json"), spot / "mesh.ply"),
+        "spot_known": (spot, False, lambda: _gt_cameras(spot / "cameras.json"), spot / "mesh.ply"),
+        "temple": (temple_par.parent, True, lambda: _gt_par(temple_par), None),
+        "dino": (DATA / "oxford-dinosaur" / "images", False, None, None),
+    }
+
+
+def _gt_cameras(path: Path) -> dict:
+    return {Path(c.name).stem: c for c in load_cameras(path).frames}
+
+
+def _gt_par(path: Path) -> dict:
+    return {
+        Path(name).stem: camera_from_krt(K, R, t, 640, 480, name)
+        for name, K, R, t in read_middlebury_par(path)
+    }
+
+
+def score_run(run: Path, gt_by_name: dict | None, gt_mesh: Path | None) -> dict:
+    """Camera errors (median), Chamfer (% bbox diagonal) and report numbers of one run."""
+    report = read_json(run / "recon_report.json")
+    row = {
+        "registered": f"{report.get('registered_views')}/{report.get('total_views')}",
+        "rot_med": None,
+        "ctr_med": None,
+        "chamfer_pct": None,
+        "iou": report.get("silhouette_iou_mean"),
+        "watertight": report.get("proxy_watertight"),
+        "reproj": report.get("mean_reprojection_error_px"),
+        "depth": report.get("depth_source"),
+        "s_poses": report.get("seconds_poses"),
+        "s_total": report.get("seconds_total_before_report"),
+    }
+    if gt_by_name:
+        est_by_name = {Path(c.name).stem: c for c in load_cameras(run / "cameras.json").frames}
+        common = [k for k in est_by_name if k in gt_by_name]
+        err = camera_errors([est_by_name[k] for k in common], [gt_by_name[k] for k in common])
+        row["rot_med"] = float(np.median(err["rotation_error_deg"]))
+        row["ctr_med"] = float(np.median(err["centre_error_pct"]))
+        if gt_mesh is not None:
+            gt_points = sample_mesh(gt_mesh)
+            proxy = sample_mesh(run / "proxy_mesh.ply")
+            aligned = err["scale"] * proxy @ err["R"].T + err["t"]
+            diag = float(np.linalg.norm(gt_points.max(0) - gt_points.min(0)))
+            row["chamfer_pct"] = 100 * chamfer_l1(aligned, gt_points) / diag
+    return row
+
+
+def run_variants(out: Path, names: list[str], variants: list[str]) -> int:
+    from recon.ingest import IngestConfig
+    from recon.pipeline import ReconConfig, run_recon
+    from recon.rundir import RunDir
+
+    out.mkdir(parents=True, exist_ok=True)
+    sets = datasets(out)
+    rows = []
+    for name in names:
+        capture, ignore_poses, gt, gt_mesh = sets[name]
+        for variant in variants:
+            if not ignore_poses and variant not in DEPTH_VARIANTS and name != "dino":
+                continue  # known poses: the SfM variants do not apply
+            recon_over, ingest_over = VARIANTS[variant]
+            cfg = ReconConfig(**recon_over)
+            icfg = IngestConfig(ignore_poses=ignore_poses, force=True, **ingest_over)
+            run = out / f"{name}-{variant}"
+            try:
+                run_recon(capture, RunDir(run), cfg, icfg)
+                row = score_run(run, gt() if gt else None, gt_mesh)
+            except Exception as exc:  # noqa: BLE001 - a failed variant is a table row
+                row = {"registered": f"FAILED: {exc}"[:60]}
+            rows.append({"dataset": name, "variant": variant, **row})
+            print(rows[-1], flush=True)
+    cols = ["dataset", "variant", "registered", "rot_med", "ctr_med", "chamfer_pct", "iou",
+            "watertight", "reproj", "depth", "s_poses", "s_total"]  # fmt: skip
+    print("| " + " | ".join(cols) + " |")
+    print("|" + "---|" * len(cols))
+    for row in rows:
+        cells = []
+        for c in cols:
+            v = row.get(c)
+            cells.append("-" if v is None else f"{v:.3f}" if isinstance(v, float) else str(v))
+        print("| " + " | ".join(cells) + " |")
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("run", type=Path, help="run directory written by `sine recon`")
+    parser.add_argument("run", type=Path, nargs="?", help="run directory written by `sine recon`")
+    parser.add_argument("--variants", type=Path, help="run the variant table into this folder")
+    parser.add_argument(
+        "--datasets",
+        nargs="+",
+        default=["spot", "spot_known", "temple", "dino"],
+        help="datasets of the variant table (spot, spot_known, temple, dino)",
+    )
+    parser.add_argument(
+        "--which", nargs="+", default=list(VARIANTS), help="variants to run (see VARIANTS)"
+    )
     parser.add_argument("--gt-par", type=Path, help="Middlebury *_par.txt with the GT cameras")
     parser.add_argument(
         "--gt-cameras", type=Path, help="cameras.json with the GT cameras (e.g. from `sine synth`)"
@@ -92,6 +230,10 @@ def main() -> int:
         "--gt-mesh", type=Path, help="GT mesh in the GT cameras' frame (Chamfer-L1)"
     )
     args = parser.parse_args()
+    if args.variants:
+        return run_variants(args.variants, args.datasets, args.which)
+    if args.run is None:
+        parser.error("give a RUN directory or --variants OUT")
 
     cams = load_cameras(args.run / "cameras.json")
     est_by_name = {Path(c.name).stem: c for c in cams.frames}

@@ -7,6 +7,9 @@ Middlebury ring (`*_par.txt`), a NeuS/IDR folder (`cameras_sphere.npz`) or image
 - `images/<stem>.png`: working images, undistorted, resized (never upscaled) to `width`;
 - `captures.json`: source files, sizes, hashes, per-image status, the ingest config;
 - `cameras.json`: only when the input carries poses (intrinsics scaled to the working size);
+  with `ignore_poses` the extrinsics are dropped but the intrinsics are kept (per image record,
+  `intrinsics`: fx, fy, cx, cy at the working size) as a fixed prior for SfM, unless
+  `ignore_intrinsics` drops them too;
 - `masks/<stem>.png`, `depth/<stem>.npy`: when the input carries them (resized with nearest).
 
 The stage is idempotent: the same source with the same options is skipped unless `force`.
@@ -69,7 +72,14 @@ class IngestConfig:
     )
     format: str = option("auto", "capture format (auto = detect it)", choices=FORMATS)
     ignore_poses: bool = option(
-        False, "do not write cameras.json even if the capture carries poses (recon runs SfM)"
+        False,
+        "do not write cameras.json even if the capture carries poses (recon runs SfM); the "
+        "capture's intrinsics are still kept as a fixed prior for SfM (see --ignore-intrinsics)",
+    )
+    ignore_intrinsics: bool = option(
+        False,
+        "with --ignore-poses: drop the capture's intrinsics too (SfM estimates focal length "
+        "and principal point itself)",
     )
     masks: Path | None = option(
         None, "folder of foreground masks (0/255 images) matched to images by file stem; wins "
@@ -170,6 +180,14 @@ def ingest_capture(capture: Path, run: RunDir, cfg: IngestConfig | None = None) 
         run.cameras.unlink(missing_ok=True)
         if cap.has_poses:
             cap.notes.append("poses in the capture were ignored (--ignore-poses)")
+            if cfg.ignore_intrinsics:
+                cap.notes.append("intrinsics in the capture were ignored (--ignore-intrinsics)")
+            else:
+                for record, cam in zip(records, cameras, strict=True):
+                    if cam is not None:
+                        record["intrinsics"] = {
+                            k: float(getattr(cam, k)) for k in ("fx", "fy", "cx", "cy")
+                        }
     captures = {
         "source": source,
         "format": fmt,

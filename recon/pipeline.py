@@ -12,13 +12,14 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from recon.rundir import RunDir
-from render.cameras import CameraSet
+from render.cameras import Camera, CameraSet
 from render.configs import option, to_dict
 from render.errors import SineError
-from render.io import read_depth, read_json, read_mask, write_depth, write_json
+from render.io import atomic_path, read_depth, read_json, read_mask, write_depth, write_json
 
 STAGES = ("ingest", "masks", "poses", "normalize", "depth", "proxy_mesh", "report")
 
@@ -59,14 +60,55 @@ class ReconConfig:
     min_registered_fraction: float = option(
         0.7, "poses: fail when fewer views than this fraction register"
     )
+    sfm_min_object_px: float = option(
+        400.0,
+        "poses: upsample the SfM images (bicubic) until the object's median bounding-box "
+        "diagonal reaches this many pixels (0 = never upsample)",
+    )
+    sfm_max_upscale: float = option(2.0, "poses: largest SfM upsampling factor")
+    sfm_peak_threshold: float = option(
+        0.002,
+        "poses: SIFT peak (contrast) threshold; lower finds more, weaker features (small or "
+        "low-contrast objects)",
+    )
+    sfm_threads: int = option(
+        1, "poses: SfM threads; 1 = deterministic results, -1 = all cores (faster, results vary)"
+    )
+    sfm_affine_shape: bool = option(
+        False, "poses: SIFT with affine shape estimation (slower; wide baselines)"
+    )
+    sfm_domain_size_pooling: bool = option(False, "poses: SIFT with domain-size pooling")
+    sfm_guided_matching: bool = option(
+        False, "poses: guided matching (re-match with the two-view geometry)"
+    )
+    sfm_final_ba: bool = option(
+        True,
+        "poses: a final robust bundle adjustment with tight tolerances after filtering "
+        "points with large reprojection error or small triangulation angle",
+    )
     seed: int = option(0, "poses: random seed of SfM")
     target_radius: float = option(
         0.85, "normalize: radius of the object's bounding sphere in run units"
+    )
+    depth_method: str = option(
+        "auto",
+        "depth: dataset = the capture's depth maps; visual_hull; visual_hull+stereo = hull depth "
+        "refined by two-view SGBM stereo where consistent (concavities); auto = dataset when "
+        "every view has depth, else visual_hull",
+        choices=["auto", "dataset", "visual_hull", "visual_hull+stereo"],
+    )
+    stereo_max_behind: float = option(
+        0.15, "depth: stereo may lie at most this far (run units) behind the hull surface"
     )
     hull_resolution: int = option(160, "depth: visual-hull voxels along the longest side")
     hull_tolerance: int = option(1, "depth: views allowed to disagree when carving the visual hull")
     tsdf_voxel_size: float = option(1 / 256, "proxy: TSDF voxel size in run units")
     tsdf_trunc_voxels: float = option(3.0, "proxy: TSDF truncation in voxels")
+    proxy_close_with_hull: bool = option(
+        True,
+        "proxy: close what no view sees by fusing the visual hull, ray cast from virtual views "
+        "all around, at low weight (watertight proxy where the hull is)",
+    )
     min_component: float = option(
         0.02,
         "proxy: keep connected parts with at least this fraction of the largest part's triangles",
@@ -168,7 +210,13 @@ class Pipeline:
             sfm_views.append(
                 (r["name"], self.run.image_path(r["name"]), self.run.mask_path(r["name"]), source)
             )
-        image_dir, mask_dir = prepare_sfm_images(sfm_views, work, self.cfg.sfm_max_image_size)
+        image_dir, mask_dir = prepare_sfm_images(
+            sfm_views,
+            work,
+            self.cfg.sfm_max_image_size,
+            min_object_px=self.cfg.sfm_min_object_px,
+            max_upscale=self.cfg.sfm_max_upscale,
+        )
         params = SfmParams(
             camera_model=self.cfg.camera_model,
             exhaustive_below=self.cfg.exhaustive_below,
@@ -176,10 +224,29 @@ class Pipeline:
             min_registered_fraction=self.cfg.min_registered_fraction,
             mapper=self.cfg.mapper,
             seed=self.cfg.seed,
+            peak_threshold=self.cfg.sfm_peak_threshold,
+            num_threads=self.cfg.sfm_threads,
+            estimate_affine_shape=self.cfg.sfm_affine_shape,
+            domain_size_pooling=self.cfg.sfm_domain_size_pooling,
+            guided_matching=self.cfg.sfm_guided_matching,
+            final_ba=self.cfg.sfm_final_ba,
         )
         names = [r["name"] for r in views]
-        result = run_sfm(image_dir, mask_dir, names, work, params)
-        info = {"pose_source": f"sfm ({result.mapper})", "sfm_models": result.num_models}
+        # --ignore-poses drops only the extrinsics: intrinsics the capture carries (ingest keeps
+        # them per record unless --ignore-intrinsics) are fixed during SfM.
+        intrinsics = {
+            r["name"]: Camera(width=r["width"], height=r["height"], **r["intrinsics"])
+            for r in views
+            if r.get("intrinsics")
+        }
+        result = run_sfm(image_dir, mask_dir, names, work, params, intrinsics=intrinsics)
+        sfm_width = int(cv2.imread(str(image_dir / names[0]), cv2.IMREAD_UNCHANGED).shape[1])
+        info = {
+            "pose_source": f"sfm ({result.mapper})",
+            "sfm_models": result.num_models,
+            "sfm_intrinsics": result.intrinsics,
+            "sfm_image_width": sfm_width,
+        }
         by_name = {r["name"]: r for r in views}
         depth_paths = {n: self.run.depth_path(n) for n in names if by_name[n].get("depth")}
         if depth_paths:
@@ -239,19 +306,58 @@ class Pipeline:
             "normalization_center": [float(x) for x in new.center],
         }
 
+    def _hull(self, cams, masks, fresh: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+        """The visual-hull mesh, cached in visual_hull.npz (the depth stage refreshes it)."""
+        from recon.depth import visual_hull_mesh
+
+        path = self.run.root / "visual_hull.npz"
+        if path.is_file() and not fresh:
+            data = np.load(path)
+            return data["vertices"], data["faces"], float(data["voxel"])
+        verts, faces, voxel = visual_hull_mesh(
+            cams, masks, self.cfg.hull_resolution, self.cfg.hull_tolerance
+        )
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, vertices=verts, faces=faces, voxel=voxel)
+        return verts, faces, voxel
+
     def stage_depth(self) -> dict:
         from recon.depth import visual_hull_depth
 
         cams = self.run.load_cameras().frames
         by_name = {r["name"]: r for r in self.views()}
-        if all(by_name.get(c.name, {}).get("depth") for c in cams):
+        method = self.cfg.depth_method
+        have = all(by_name.get(c.name, {}).get("depth") for c in cams)
+        if method == "dataset" and not have:
+            raise SineError("--depth-method dataset: the capture has no depth for every view")
+        (self.run.root / "visual_hull.npz").unlink(missing_ok=True)  # cams may have changed
+        if method in ("auto", "dataset") and have:
             return {"depth_source": "dataset"}
+        masks = self.masks_for(cams)
+        hull = self._hull(cams, masks, fresh=True)
         depths, stats = visual_hull_depth(
-            cams, self.masks_for(cams), self.cfg.hull_resolution, self.cfg.hull_tolerance
+            cams, masks, self.cfg.hull_resolution, self.cfg.hull_tolerance, hull=hull
         )
+        source = "visual_hull"
+        if method == "visual_hull+stereo":
+            from recon.depth import hull_stereo_depth
+            from render.io import read_image
+
+            images = [read_image(self.run.image_path(c.name)) for c in cams]
+            depths, more = hull_stereo_depth(
+                cams,
+                images,
+                masks,
+                depths,
+                front_tol=2.0 * stats["hull_voxel_size"],
+                max_behind=self.cfg.stereo_max_behind,
+            )
+            stats.update(more)
+            source = "visual_hull+stereo"
         for cam, depth in zip(cams, depths, strict=True):
             write_depth(self.run.depth_path(cam.name), depth)
-        return {"depth_source": "visual_hull", **stats}
+        return {"depth_source": source, **stats}
 
     def stage_proxy_mesh(self) -> dict:
         from recon.proxy_mesh import (
@@ -264,11 +370,22 @@ class Pipeline:
 
         cams = self.run.load_cameras().frames
         depths = [read_depth(self.run.depth_path(c.name)) for c in cams]
-        mesh = fuse_tsdf(cams, depths, self.cfg.tsdf_voxel_size, self.cfg.tsdf_trunc_voxels)
-        mesh = cull_outside_silhouettes(mesh, cams, self.masks_for(cams))
+        masks = self.masks_for(cams)
+        closing = None
+        if self.cfg.proxy_close_with_hull:
+            from recon.depth import raycast_views
+            from recon.proxy_mesh import closing_views
+
+            verts, faces, _ = self._hull(cams, masks)
+            virtual = closing_views()
+            closing = list(zip(virtual, raycast_views(verts, faces, virtual), strict=True))
+        mesh = fuse_tsdf(
+            cams, depths, self.cfg.tsdf_voxel_size, self.cfg.tsdf_trunc_voxels, closing=closing
+        )
+        mesh = cull_outside_silhouettes(mesh, cams, masks)
         mesh = clean_mesh(mesh, self.cfg.target_triangles, min_component=self.cfg.min_component)
         write_mesh(self.run.proxy_mesh, mesh)
-        return mesh_stats(mesh)
+        return {**mesh_stats(mesh), "proxy_closed_with_hull": closing is not None}
 
     def stage_report(self) -> dict:
         from recon.report import write_report

@@ -5,6 +5,20 @@ A turntable's camera is fixed while the object turns, so matches on the static b
 `mask_path`: a folder of `<image name>.png`, 0 = ignore). Pairs: exhaustive for small sets,
 otherwise a cyclic window of neighbours (sequential matching with the loop closed between the
 last and first frames). One shared camera (CameraMode.SINGLE), incremental mapping, seeded.
+
+Intrinsics prior: when the capture carries intrinsics (transforms.json, COLMAP, Middlebury...)
+and only its poses are ignored, `run_sfm(intrinsics=...)` fixes them (PINHOLE, focal length and
+principal point not refined): a narrow-FOV ring around a small object cannot tell focal length
+from distance, and a wrong focal length bends the whole ring. Views with different intrinsics
+get one camera each.
+
+Small objects: SIFT finds few features when the object covers a small part of the image, so the
+SfM images are upsampled until the median foreground bounding-box diagonal reaches
+`min_object_px` (at most `max_upscale`, never beyond `max_image_size`).
+
+Final bundle adjustment: after mapping, points with a large reprojection error or a small
+triangulation angle are filtered and the model is re-adjusted with a robust (Cauchy) loss and
+tight tolerances, twice.
 The largest model is kept; fewer than `min_registered_fraction` of the views registered is an
 error that says what to try. With a distorting camera model the working images and masks are
 undistorted in place afterwards (originals kept in sfm/images_distorted) so cameras.json stays
@@ -41,6 +55,12 @@ class SfmParams:
     mapper: str = "auto"  # auto: incremental, then global when views are missing
     seed: int = 0
     num_threads: int = -1
+    estimate_affine_shape: bool = False
+    domain_size_pooling: bool = False
+    guided_matching: bool = False
+    final_ba: bool = True
+    final_ba_max_error_px: float = 2.0
+    final_ba_min_tri_angle: float = 1.5
 
 
 @dataclass
@@ -53,6 +73,7 @@ class SfmResult:
     distortion: np.ndarray  # [4] OpenCV distortion of the shared camera
     observations: dict  # image name -> (keypoints [M, 2], their 3D points [M, 3])
     mapper: str  # "incremental" or "global": which mapper gave the kept model
+    intrinsics: str = "estimated"  # "fixed (prior)" when the capture's intrinsics were used
 
 
 def _write_pairs(path: Path, names: list[str], overlap: int) -> None:
@@ -98,14 +119,55 @@ def _camera_from_colmap(image, camera) -> tuple[Camera, np.ndarray]:
     return cam, dist
 
 
+def foreground_diagonal(masks: list[np.ndarray]) -> float:
+    """Median diagonal (pixels) of the masks' foreground bounding boxes (0 when all are empty)."""
+    diags = []
+    for m in masks:
+        rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+        if len(rows):
+            diags.append(np.hypot(rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1))
+    return float(np.median(diags)) if diags else 0.0
+
+
+def sfm_upscale(
+    object_px: float, width: int, min_object_px: float, max_upscale: float, max_size: int
+) -> float:
+    """Upsampling factor for SfM images whose object spans `object_px` pixels (1 = none)."""
+    if object_px <= 0 or min_object_px <= 0 or object_px >= min_object_px:
+        return 1.0
+    factor = min(min_object_px / object_px, max_upscale, max_size / width)
+    return max(1.0, factor)
+
+
+def _margin(mask: np.ndarray, width: int, margin: float | None) -> np.ndarray:
+    """Grows (margin > 0) or shrinks (< 0) a uint8 mask by `margin` x width/100 pixels;
+    None = grow by ~width/200 (features on the outline count)."""
+    if margin is None:
+        k = max(3, 2 * round(width / 200) + 1)
+        return cv2.dilate(mask, np.ones((k, k), np.uint8)) > 0
+    r = round(abs(margin) * width / 100)
+    if r == 0:
+        return mask > 0
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    op = cv2.dilate if margin > 0 else cv2.erode
+    return op(mask, kernel) > 0
+
+
 def prepare_sfm_images(
-    views: list[tuple[str, Path, Path, Path | None]], work: Path, max_size: int
+    views: list[tuple[str, Path, Path, Path | None]],
+    work: Path,
+    max_size: int,
+    min_object_px: float = 0.0,
+    max_upscale: float = 2.0,
+    mask_margin: float | None = None,
 ) -> tuple[Path, Path]:
     """Writes SfM inputs: work/images/<name> and work/masks/<name>.png.
 
     `views` = (name, working image, mask, source image or None). SIFT localises better at the
     source resolution than on the (smaller) working images, so the source is used when it exists
     and has the working image's aspect ratio, downscaled to at most `max_size` pixels wide.
+    When the object's median bounding-box diagonal is below `min_object_px` pixels, the images
+    are upsampled (bicubic, all by one factor so the camera stays shared; see `sfm_upscale`).
     Masks are resized (nearest) to match and dilated a little (features on the outline count).
     """
     if work.exists():
@@ -113,7 +175,10 @@ def prepare_sfm_images(
     (work / "images").mkdir(parents=True)
     (work / "masks").mkdir()
     sizes = set()
-    for name, image_path, mask_path, source in views:
+    masks = [read_mask(v[2]) for v in views]
+    object_px = foreground_diagonal(masks)
+    upscale = None
+    for (name, image_path, _, source), mask in zip(views, masks, strict=True):
         working = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
         if working is None:
             raise SineError(f"cannot read {image_path}")
@@ -132,14 +197,19 @@ def prepare_sfm_images(
             image = cv2.resize(
                 image, (max(max_size, w), round(image.shape[0] * s)), interpolation=cv2.INTER_AREA
             )
+        if upscale is None:  # one factor for all views, from the first view's SfM size
+            in_sfm_px = object_px * image.shape[1] / w
+            upscale = sfm_upscale(
+                in_sfm_px, image.shape[1], min_object_px, max_upscale, max(max_size, w)
+            )
+        if upscale > 1.0:
+            size = (round(image.shape[1] * upscale), round(image.shape[0] * upscale))
+            image = cv2.resize(image, size, interpolation=cv2.INTER_CUBIC)
         sizes.add(image.shape[:2])
         cv2.imwrite(str(work / "images" / name), image)
-        mask = read_mask(mask_path).astype(np.uint8)
+        mask = mask.astype(np.uint8)
         mask = cv2.resize(mask, (image.shape[1], image.shape[0]), interpolation=cv2.INTER_NEAREST)
-        k = max(3, 2 * round(image.shape[1] / 200) + 1)
-        write_mask(
-            work / "masks" / (name + ".png"), cv2.dilate(mask, np.ones((k, k), np.uint8)) > 0
-        )
+        write_mask(work / "masks" / (name + ".png"), _margin(mask, image.shape[1], mask_margin))
     if len(sizes) > 1:
         raise SineError(
             f"the images have {len(sizes)} different sizes; one shared camera needs one size. "
@@ -148,12 +218,38 @@ def prepare_sfm_images(
     return work / "images", work / "masks"
 
 
+def prior_intrinsics(
+    image_dir: Path, names: list[str], intrinsics: dict[str, Camera] | None
+) -> list[tuple[float, float, float, float]] | None:
+    """Per name (fx, fy, cx, cy) scaled to the SfM image sizes, or None without a full prior."""
+    if not intrinsics or any(n not in intrinsics for n in names):
+        return None
+    out = []
+    for name in names:
+        h, w = cv2.imread(str(image_dir / name), cv2.IMREAD_UNCHANGED).shape[:2]
+        cam = intrinsics[name].resized(w, h)
+        out.append((cam.fx, cam.fy, cam.cx, cam.cy))
+    return out
+
+
+def _shared(params: list[tuple[float, ...]], rtol: float = 5e-3) -> bool:
+    arr = np.asarray(params)
+    return bool(np.all(np.abs(arr - arr[0]) <= rtol * np.abs(arr[0]).max()))
+
+
 def run_sfm(
-    image_dir: Path, mask_dir: Path, names: list[str], work: Path, params: SfmParams
+    image_dir: Path,
+    mask_dir: Path,
+    names: list[str],
+    work: Path,
+    params: SfmParams,
+    intrinsics: dict[str, Camera] | None = None,
 ) -> SfmResult:
     """SIFT + matching + mapping on `names` in `image_dir`; masks in `mask_dir`/<name>.png.
 
-    Cameras come back at the resolution of the images in `image_dir`.
+    `intrinsics`: known pinhole intrinsics per name (any resolution with the images' aspect
+    ratio); when every name has one they are fixed during SfM. Cameras come back at the
+    resolution of the images in `image_dir`.
     """
     import pycolmap
 
@@ -162,25 +258,37 @@ def run_sfm(
     db_path.unlink(missing_ok=True)
     for sub in ("incremental", "global", "sparse"):
         shutil.rmtree(work / sub, ignore_errors=True)
+    prior = prior_intrinsics(image_dir, names, intrinsics)
+    fixed = prior is not None
     reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = params.camera_model
+    reader.camera_model = "PINHOLE" if fixed else params.camera_model
     reader.mask_path = str(mask_dir)
+    camera_mode = pycolmap.CameraMode.SINGLE
+    if fixed and _shared(prior):
+        reader.camera_params = ",".join(f"{v:.10g}" for v in np.median(prior, axis=0))
+    elif fixed:
+        camera_mode = pycolmap.CameraMode.PER_IMAGE
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = params.max_num_features
     extraction.sift.peak_threshold = params.peak_threshold
+    extraction.sift.estimate_affine_shape = params.estimate_affine_shape
+    extraction.sift.domain_size_pooling = params.domain_size_pooling
     extraction.num_threads = params.num_threads
     device = pycolmap.Device.cpu
     pycolmap.extract_features(
         db_path,
         image_dir,
         image_names=names,
-        camera_mode=pycolmap.CameraMode.SINGLE,
+        camera_mode=camera_mode,
         reader_options=reader,
         extraction_options=extraction,
         device=device,
     )
+    if fixed and camera_mode == pycolmap.CameraMode.PER_IMAGE:
+        _write_per_image_intrinsics(db_path, dict(zip(names, prior, strict=True)))
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = params.num_threads
+    matching.guided_matching = params.guided_matching
     if len(names) < params.exhaustive_below:
         pycolmap.match_exhaustive(db_path, matching_options=matching, device=device)
     else:
@@ -197,6 +305,8 @@ def run_sfm(
         options.random_seed = params.seed
         options.num_threads = params.num_threads
         options.ba_refine_principal_point = False
+        options.ba_refine_focal_length = not fixed
+        options.ba_refine_extra_params = not fixed
         # small objects on a turntable give few features and small baselines between neighbours.
         options.mapper.init_min_num_inliers = params.init_min_num_inliers
         options.mapper.init_min_tri_angle = params.init_min_tri_angle
@@ -212,6 +322,9 @@ def run_sfm(
         options = pycolmap.GlobalPipelineOptions()
         options.random_seed = params.seed
         options.num_threads = params.num_threads
+        options.mapper.bundle_adjustment.refine_focal_length = not fixed
+        options.mapper.bundle_adjustment.refine_principal_point = False
+        options.mapper.bundle_adjustment.refine_extra_params = not fixed
         (work / "global").mkdir()
         found = pycolmap.global_mapping(db_path, image_dir, work / "global", options=options)
         models.update({("global", k): r for k, r in found.items()})
@@ -232,6 +345,8 @@ def run_sfm(
             "directory, or give --masks DIR), capture with more overlap between neighbouring views "
             "(<= 10-15 degrees of turn) and more texture, or give known poses (transforms.json, COLMAP, ...)"
         )
+    if params.final_ba:
+        final_bundle_adjustment(best, params, refine_intrinsics=not fixed)
     (work / "sparse").mkdir()
     best.write(work / "sparse")
     by_name = {}
@@ -244,17 +359,60 @@ def run_sfm(
             cams.append(by_name[name][0])
             dists.append(by_name[name][1])
     points = np.array([p.xyz for p in best.points3D.values()], dtype=np.float64).reshape(-1, 3)
+    reproj = float(best.compute_mean_reprojection_error())
+    observations = _observations(best)
+    distortion = dists[0] if dists else np.zeros(4)
     result = SfmResult(
         cameras=cams,
         unregistered=[n for n in names if n not in by_name],
-        mean_reprojection_error_px=float(best.compute_mean_reprojection_error()),
+        mean_reprojection_error_px=reproj,
         points=points,
         num_models=len(models),
         mapper=best_key[0],
-        distortion=dists[0] if dists else np.zeros(4),
-        observations=_observations(best),
+        distortion=distortion,
+        observations=observations,
+        intrinsics="fixed (prior)" if fixed else "estimated",
     )
     return result
+
+
+def _write_per_image_intrinsics(db_path: Path, prior: dict[str, tuple]) -> None:
+    """Sets each image's own PINHOLE camera in the database to its known intrinsics."""
+    import pycolmap
+
+    db = pycolmap.Database.open(db_path)
+    try:
+        for image in db.read_all_images():
+            camera = db.read_camera(image.camera_id)
+            camera.params = np.asarray(prior[image.name], np.float64)
+            camera.has_prior_focal_length = True
+            db.update_camera(camera)
+    finally:
+        db.close()
+
+
+def final_bundle_adjustment(reconstruction, params: SfmParams, refine_intrinsics: bool) -> None:
+    """Filters poorly constrained points, then a robust, tightly converged global BA (twice)."""
+    import pycolmap
+
+    for _ in range(2):
+        pycolmap.ObservationManager(reconstruction).filter_all_points3D(
+            params.final_ba_max_error_px, params.final_ba_min_tri_angle
+        )
+        options = pycolmap.BundleAdjustmentOptions()
+        options.refine_focal_length = refine_intrinsics
+        options.refine_principal_point = False
+        options.refine_extra_params = refine_intrinsics
+        options.print_summary = False
+        options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+        options.ceres.loss_function_scale = 1.0
+        solver = options.ceres.solver_options
+        solver.max_num_iterations = 300
+        solver.function_tolerance = 1e-12
+        solver.gradient_tolerance = 1e-12
+        solver.parameter_tolerance = 1e-12
+        solver.num_threads = params.num_threads
+        pycolmap.bundle_adjustment(reconstruction, options)
 
 
 def _observations(reconstruction) -> dict[str, tuple[np.ndarray, np.ndarray]]:

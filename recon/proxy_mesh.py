@@ -1,10 +1,17 @@
 """The proxy mesh: TSDF fusion of the depth maps (Open3D VoxelBlockGrid), cleaned for ARAP/embree.
 
 Fusion: `o3d.t.geometry.VoxelBlockGrid` (ScalableTSDFVolume returns empty meshes for float depth
-in Open3D 0.20). Cleaning: duplicated/degenerate triangles and vertices removed, non-manifold
+in Open3D 0.20). Closing: parts no view sees (the underside of an object on a turntable) leave
+the fused surface open. With `closing_views` the visual hull (a closed outer bound) is ray cast
+from virtual cameras all around the object (below and above included) and fused at low weight
+(the real views are integrated `real_weight` times, each virtual view once), so the real depth
+decides wherever it exists and the hull closes the rest: the mesh is watertight when the hull
+is. (Open3D 0.20's `fill_holes` was found to corrupt vertices; it stays as a last, checked
+step for small holes.) Cleaning: duplicated/degenerate triangles and vertices removed, non-manifold
 edges removed, floaters culled (vertices that project outside the silhouettes of several views),
-the largest connected component kept, small holes filled, quadric decimation to
-`target_triangles`, normals oriented outward (positive signed volume).
+the largest connected component kept, quadric decimation to `target_triangles`, holes up to
+`max_hole_edges` boundary edges closed by fans (`fill_small_holes`), normals oriented outward
+(positive signed volume).
 """
 
 from __future__ import annotations
@@ -16,16 +23,45 @@ from render.cameras import Camera
 from render.errors import SineError
 
 
+def closing_views(n: int = 26, distance: float = 3.0, size: int = 256) -> list[Camera]:
+    """Virtual cameras around the origin (run units: object inside the unit sphere): the 26
+    directions of a 3x3x3 cube's faces, edges and corners (`n` <= 26 takes the first n)."""
+    from render.cameras import look_at
+
+    dirs = [
+        np.array([x, y, z], float)
+        for x in (-1, 0, 1)
+        for y in (-1, 0, 1)
+        for z in (-1, 0, 1)
+        if (x, y, z) != (0, 0, 0)
+    ]
+    dirs.sort(key=lambda d: np.abs(d).sum())  # faces first, then edges, corners
+    f = 0.5 * size / np.tan(np.arcsin(1.0 / distance)) * 0.95
+    cams = []
+    for d in dirs[:n]:
+        d = d / np.linalg.norm(d)
+        up = np.array([0.0, 1.0, 0.0]) if abs(d[2]) > 0.9 else np.array([0.0, 0.0, 1.0])
+        c2w = look_at(d * distance, np.zeros(3), up)
+        cams.append(
+            Camera(width=size, height=size, fx=f, fy=f, cx=size / 2, cy=size / 2,
+                   camera_to_world=c2w, name="virtual")
+        )  # fmt: skip
+    return cams
+
+
 def fuse_tsdf(
     cameras: list[Camera],
     depths: list[np.ndarray],
     voxel_size: float = 1 / 128,
     trunc_voxels: float = 4.0,
+    closing: list[tuple[Camera, np.ndarray]] | None = None,
+    real_weight: int = 4,
 ):
     """TSDF-fuses float camera-z depth maps (run units) -> legacy o3d TriangleMesh.
 
     The voxel is at least 1.5 pixel footprints at the object (distance to the origin / fx): finer
-    voxels than the depth samples leave the fused surface full of holes.
+    voxels than the depth samples leave the fused surface full of holes. `closing`: (camera,
+    depth) pairs fused once each while every real view is fused `real_weight` times.
     """
     import open3d as o3d
 
@@ -44,7 +80,10 @@ def fuse_tsdf(
     )
     trunc_voxels = float(trunc_voxels)
     trunc = trunc_voxels * voxel_size
-    for cam, depth in tqdm(list(zip(cameras, depths, strict=True)), desc="tsdf", unit="view"):
+    views = list(zip(cameras, depths, strict=True))
+    if closing:
+        views = views * real_weight + list(closing)
+    for cam, depth in tqdm(views, desc="tsdf", unit="view"):
         d = np.ascontiguousarray(depth, np.float32)
         if not (d > 0).any():
             continue
@@ -96,10 +135,54 @@ def _keep_components(mesh, min_fraction: float):
     return mesh
 
 
+def fill_small_holes(mesh, max_edges: int = 200):
+    """Closes every boundary loop of at most `max_edges` edges with a fan around its centroid.
+
+    Boundary half-edges (a -> b used by one triangle only) are grouped into loops (connected
+    components); each gets a new vertex at the loop's centroid and the triangles (b, a, centre),
+    which run against the neighbouring triangles' orientation as a closed surface needs.
+    (Replaces Open3D 0.20's fill_holes, which was found to corrupt vertices.)
+    """
+    import open3d as o3d
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    tris = np.asarray(mesh.triangles)
+    verts = np.asarray(mesh.vertices)
+    if len(tris) == 0 or max_edges <= 0:
+        return mesh
+    half = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])  # [3F, 2]
+    key = np.sort(half, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    boundary = half[counts[inverse.ravel()] == 1]  # [B, 2] directed a -> b
+    if len(boundary) == 0:
+        return mesh
+    n = len(verts)
+    graph = coo_matrix((np.ones(len(boundary)), (boundary[:, 0], boundary[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    loop = label[boundary[:, 0]]
+    new_verts, new_tris = [verts], [tris]
+    next_index = n
+    for lab in np.unique(loop):
+        edges = boundary[loop == lab]
+        if len(edges) > max_edges or len(edges) < 3:
+            continue
+        centre = verts[np.unique(edges)].mean(0)
+        new_verts.append(centre[None])
+        new_tris.append(np.stack([edges[:, 1], edges[:, 0], np.full(len(edges), next_index)], 1))
+        next_index += 1
+    if next_index == n:
+        return mesh
+    mesh.vertices = o3d.utility.Vector3dVector(np.concatenate(new_verts))
+    mesh.triangles = o3d.utility.Vector3iVector(np.concatenate(new_tris).astype(np.int32))
+    return mesh
+
+
 def clean_mesh(
-    mesh, target_triangles: int = 40_000, hole_size: float = 0.1, min_component: float = 1.0
+    mesh, target_triangles: int = 40_000, max_hole_edges: int = 200, min_component: float = 1.0
 ):
-    """Components >= `min_component` x the largest (1 = largest only), no duplicates/degenerates/non-manifold edges, holes, decimation, normals."""
+    """Components >= `min_component` x the largest (1 = largest only), no duplicates/degenerates/
+    non-manifold edges, decimation, holes up to `max_hole_edges` filled, normals."""
     import open3d as o3d
 
     def basic(m):
@@ -119,25 +202,15 @@ def clean_mesh(
             "the fused proxy mesh is empty: the depth maps do not agree (check poses and masks)"
         )
     mesh = basic(_keep_components(mesh, min_component))
-    try:
-        filled = (
-            o3d.t.geometry.TriangleMesh.from_legacy(mesh)
-            .fill_holes(hole_size=hole_size)
-            .to_legacy()
-        )
-        # fill_holes (Open3D 0.20) can overwrite a vertex with garbage (~1e36): then skip it.
-        old, new = np.asarray(mesh.vertices), np.asarray(filled.vertices)
-        if len(new) == len(old) and np.allclose(new, old):
-            mesh = basic(filled)
-    except Exception:  # noqa: BLE001 - hole filling is best effort
-        pass
+    mesh = basic(fill_small_holes(mesh, max_hole_edges))
     if len(mesh.triangles) > target_triangles:
         mesh = basic(mesh.simplify_quadric_decimation(target_number_of_triangles=target_triangles))
-    # hole filling and quadric decimation can fling a vertex far away: drop such vertices.
+    # quadric decimation can fling a vertex far away: drop such vertices.
     lo, hi = bounds
     v = np.asarray(mesh.vertices)
     mesh.remove_vertices_by_mask(np.any((v < lo) | (v > hi), axis=1))
     mesh = basic(_keep_components(basic(mesh), min_component))
+    mesh = basic(fill_small_holes(mesh, max_hole_edges))  # holes the far-vertex drop opened
     if signed_volume(mesh) < 0:
         mesh.triangles = o3d.utility.Vector3iVector(np.asarray(mesh.triangles)[:, ::-1].copy())
     mesh.compute_vertex_normals()

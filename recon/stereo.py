@@ -1,0 +1,194 @@
+"""Two-view stereo between neighbouring views: rectify (OpenCV), StereoSGBM, back to camera z.
+
+For a view and a neighbour: `cv2.stereoRectify` from their relative pose, both images and masks
+remapped, StereoSGBM on the rectified pair (disparity range bounded by a depth range the caller
+gives, e.g. from the visual hull), a left-right consistency check (the right matcher of
+`cv2.ximgproc`), disparities outside either silhouette dropped, and the result converted to
+camera-z depth on the ORIGINAL view's pixel grid (each original pixel samples the rectified
+disparity at its rectified position; nearest, so depth never mixes across edges).
+Pixel convention: ours puts pixel centres at +0.5, OpenCV's at integers (K shifted by 0.5).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from render.cameras import Camera
+
+
+@dataclass
+class StereoParams:
+    """Knobs of the SGBM stereo depth."""
+
+    block_size: int = 5
+    uniqueness_ratio: int = 10
+    speckle_window: int = 50
+    speckle_range: int = 2
+    lr_max_diff: float = 1.0  # left-right consistency, pixels
+    min_angle_deg: float = 4.0  # neighbour's viewing direction differs by at least this
+    max_angle_deg: float = 30.0  # ... and at most this
+
+
+def _cv_K(cam: Camera) -> np.ndarray:
+    K = cam.K.astype(np.float64).copy()
+    K[0, 2] -= 0.5
+    K[1, 2] -= 0.5
+    return K
+
+
+def neighbours(cameras: list[Camera], i: int, params: StereoParams) -> list[int]:
+    """Up to two partners of view i: the nearest viewing direction on each side (camera x)."""
+    ci = cameras[i]
+    axis_i = ci.camera_to_world[:3, 2]
+    x_i = ci.camera_to_world[:3, 0]
+    best: dict[int, tuple[float, int]] = {}
+    for j, cj in enumerate(cameras):
+        if j == i:
+            continue
+        cos = float(np.clip(axis_i @ cj.camera_to_world[:3, 2], -1, 1))
+        angle = np.degrees(np.arccos(cos))
+        if not params.min_angle_deg <= angle <= params.max_angle_deg:
+            continue
+        side = int(np.sign((cj.center - ci.center) @ x_i))
+        if side not in best or angle < best[side][0]:
+            best[side] = (angle, j)
+    return [j for _, j in sorted(best.values())]
+
+
+def _gray(image: np.ndarray) -> np.ndarray:
+    """float RGB [H, W, 3] in [0, 1] -> uint8 gray [H, W]."""
+    u8 = np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    return cv2.cvtColor(u8, cv2.COLOR_RGB2GRAY)
+
+
+def pair_depth(
+    cam_a: Camera,
+    cam_b: Camera,
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    mask_a: np.ndarray,
+    mask_b: np.ndarray,
+    z_range: tuple[float, float],
+    params: StereoParams | None = None,
+) -> np.ndarray:
+    """Camera-z depth [H, W] of view a from the pair (a, b); 0 where stereo has no answer.
+
+    `z_range` = (near, far) camera-z bounds of the object in view a (sets the disparity range).
+    """
+    params = params or StereoParams()
+    h, w = image_a.shape[:2]
+    size = (w, h)
+    rel = cam_b.world_to_camera @ cam_a.camera_to_world  # x_b = R x_a + T
+    R, T = rel[:3, :3].copy(), rel[:3, 3].reshape(3, 1).copy()
+    Ka, Kb = _cv_K(cam_a), _cv_K(cam_b)
+    zero = np.zeros((1, 5))
+    R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(
+        Ka, zero, Kb, zero, size, R, T, flags=cv2.CALIB_ZERO_DISPARITY, alpha=-1
+    )
+    if abs(P2[1, 3]) > abs(P2[0, 3]):
+        return np.zeros((h, w), np.float32)  # vertical pair: not handled (ring neighbours are not)
+    f_rect = float(P1[0, 0])
+    baseline = float(-P2[0, 3] / P2[0, 0])  # > 0: b is to the right of a (rectified x)
+    flip = baseline < 0  # mirror both images so that a is the left image for SGBM
+    baseline = abs(baseline)
+    maps_a = cv2.initUndistortRectifyMap(Ka, zero, R1, P1, size, cv2.CV_32FC1)
+    maps_b = cv2.initUndistortRectifyMap(Kb, zero, R2, P2, size, cv2.CV_32FC1)
+    left = cv2.remap(_gray(image_a), *maps_a, cv2.INTER_LINEAR)
+    right = cv2.remap(_gray(image_b), *maps_b, cv2.INTER_LINEAR)
+    m_left = cv2.remap(mask_a.astype(np.uint8), *maps_a, cv2.INTER_NEAREST) > 0
+    m_right = cv2.remap(mask_b.astype(np.uint8), *maps_b, cv2.INTER_NEAREST) > 0
+    if flip:
+        left, right = left[:, ::-1].copy(), right[:, ::-1].copy()
+        m_left, m_right = m_left[:, ::-1], m_right[:, ::-1]
+
+    # disparity range from the depth range (rectified z ~ camera z for small rectifying rotations;
+    # widened by 20 % against that approximation).
+    near, far = z_range
+    d_max = f_rect * baseline / max(near * 0.8, 1e-9)
+    d_min = f_rect * baseline / (far * 1.2)
+    # with CALIB_ZERO_DISPARITY the principal points agree: disparity = f B / z exactly.
+    min_disp = int(np.floor(d_min))
+    num = int(np.ceil((d_max - min_disp + 1) / 16.0) * 16)
+    if num <= 0 or num > 16 * 32:
+        return np.zeros((h, w), np.float32)
+    bs = params.block_size
+    sgbm = cv2.StereoSGBM_create(
+        minDisparity=min_disp,
+        numDisparities=num,
+        blockSize=bs,
+        P1=8 * bs * bs,
+        P2=32 * bs * bs,
+        disp12MaxDiff=-1,
+        uniquenessRatio=params.uniqueness_ratio,
+        speckleWindowSize=params.speckle_window,
+        speckleRange=params.speckle_range,
+        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    )
+    disp_l = sgbm.compute(left, right).astype(np.float32) / 16.0  # [H, W]
+    right_matcher = cv2.ximgproc.createRightMatcher(sgbm)
+    disp_r = right_matcher.compute(right, left).astype(np.float32) / 16.0  # negative values
+    valid = (disp_l > min_disp - 0.5) & m_left
+    rows, cols = np.nonzero(valid)
+    xr = np.round(cols - disp_l[rows, cols]).astype(int)
+    ok = (xr >= 0) & (xr < w)
+    good = np.zeros_like(valid)
+    r2, c2, x2 = rows[ok], cols[ok], xr[ok]
+    consistent = np.abs(disp_l[r2, c2] + disp_r[r2, x2]) <= params.lr_max_diff
+    consistent &= m_right[r2, x2]
+    good[r2[consistent], c2[consistent]] = True
+    disp = np.where(good, disp_l, 0.0)
+    if flip:
+        disp = disp[:, ::-1]
+
+    # back to view a's pixel grid: original pixel -> rectified pixel (pure rotation + new K).
+    grid = np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 2)  # [HW, 2]
+    pix = np.concatenate([grid, np.ones((len(grid), 1))], 1).astype(np.float64)  # OpenCV pixels
+    ray = pix @ np.linalg.inv(Ka).T  # [HW, 3], z = 1 in camera a
+    ray_rect = ray @ R1.T
+    uv_rect = ray_rect @ P1[:, :3].T
+    u = uv_rect[:, 0] / uv_rect[:, 2]
+    v = uv_rect[:, 1] / uv_rect[:, 2]
+    col = np.round(u).astype(int)
+    row = np.round(v).astype(int)
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h) & (uv_rect[:, 2] > 0)
+    d = np.zeros(len(grid))
+    d[inside] = disp[row[inside], col[inside]]
+    # rectified z' = f B / d; along this ray camera-a z = z' / ray_rect_z (ray has z_a = 1).
+    z = np.zeros(len(grid))
+    pos = d > 0
+    z[pos] = f_rect * baseline / d[pos] / ray_rect[pos, 2]
+    z = z.reshape(h, w).astype(np.float32)
+    z[~mask_a] = 0.0
+    return z
+
+
+def stereo_depth(
+    cameras: list[Camera],
+    images: list[np.ndarray],
+    masks: list[np.ndarray],
+    i: int,
+    z_range: tuple[float, float],
+    params: StereoParams | None = None,
+    agree: float = 0.01,
+) -> np.ndarray:
+    """Depth [H, W] of view i from its (up to two) neighbours; where both answer they must agree
+    within `agree` (run units) and are averaged; 0 = no answer."""
+    params = params or StereoParams()
+    maps = [
+        pair_depth(
+            cameras[i], cameras[j], images[i], images[j], masks[i], masks[j], z_range, params
+        )
+        for j in neighbours(cameras, i, params)
+    ]
+    if not maps:
+        return np.zeros(masks[i].shape, np.float32)
+    if len(maps) == 1:
+        return maps[0]
+    a, b = maps[0], maps[1]
+    both = (a > 0) & (b > 0)
+    out = np.where(a > 0, a, b)
+    out[both] = np.where(np.abs(a - b)[both] <= agree, 0.5 * (a + b)[both], 0.0)
+    return out.astype(np.float32)
