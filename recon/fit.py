@@ -39,7 +39,7 @@ from render.template_field import Background, TemplateField, TemplateFieldConfig
 class FitConfig:
     """Options of `sine fit` (template radiance field)."""
 
-    iterations: int = option(300, "training steps")
+    iterations: int = option(200, "training steps (300-1000 sharpen colour detail)")
     batch_rays: int = option(2048, "rays per step (only rays that hit the inflated proxy)")
     lr_grid: float = option(2e-2, "Adam learning rate of the hash table")
     lr_mlp: float = option(1e-2, "Adam learning rate of the MLP heads")
