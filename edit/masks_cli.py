@@ -34,11 +34,18 @@ TINT = np.array([1.0, 0.35, 0.0], np.float32)  # editable pixels in the contact 
 class MasksConfig:
     """Rendering and output options of `sine masks` (K-means options: SemanticMaskConfig)."""
 
+    space: str = option(
+        "centred",
+        "feature space of the K-means distances: the DINO features minus the object's mean "
+        "feature (the field's PCA coefficients; DINOv2 tokens of one object share a large common "
+        "component, so raw cosines are all high) or the raw decoded DINO features",
+        choices=["centred", "dino"],
+    )
     min_opacity: float = option(0.5, "pixels below this template opacity are never editable")
     thumbnail_width: int = option(160, "contact-sheet thumbnail width in pixels")
     columns: int = option(6, "contact-sheet thumbnails per row")
     tint: float = option(0.55, "contact sheet: opacity of the tint over editable pixels")
-    chunk: int = option(16384, "rays per chunk when rendering feature maps")
+    chunk: int = option(4096, "rays per chunk when rendering feature maps")
     device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
     threads: int = option(0, "torch CPU threads (0: torch's default)")
 
@@ -137,7 +144,10 @@ def semantic_masks(
     template, field, sampler = load_features(run.root, device)
 
     def render(cam):
-        out = render_feature_map(cam, template, field, sampler, cfg.chunk, device)
+        decode = cfg.space == "dino"
+        out = render_feature_map(
+            cam, template, field, sampler, chunk=cfg.chunk, device=device, decode=decode
+        )
         feats = torch.from_numpy(out["features"]).permute(2, 0, 1)  # [C, H, W]
         return feats, out["opacity"] >= cfg.min_opacity
 

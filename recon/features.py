@@ -28,10 +28,16 @@ from tqdm import tqdm
 
 from recon.fit import FitConfig, load_template, load_views, make_sampler, pick_device
 from recon.rundir import RunDir
-from render import volume
 from render.configs import option, to_dict, update_from_dict
 from render.errors import SineError
-from render.feature_field import FeatureField, FeatureFieldConfig, pca_rgb, render_feature_map
+from render.feature_field import (
+    FeatureField,
+    FeatureFieldConfig,
+    composite_features,
+    pca_rgb,
+    render_feature_map,
+    top_k_samples,
+)
 from render.hashgrid import HashGridConfig
 from render.io import atomic_path, read_json, write_image, write_json
 
@@ -69,7 +75,7 @@ class FeaturesConfig:
     seed: int = option(0, "random seed (ray batches, initialisation)")
     device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
     threads: int = option(0, "torch CPU threads (0: torch's default)")
-    eval_chunk: int = option(16384, "rays per chunk when rendering views")
+    eval_chunk: int = option(4096, "rays per chunk when sampling / rendering views")
 
 
 _RUNTIME_KEYS = (
@@ -105,6 +111,7 @@ def field_config(cfg: FeaturesConfig, feature_dim: int, geo_feat_dim: int) -> Fe
         hidden=cfg.hidden,
         hidden_layers=cfg.hidden_layers,
         geo_feat_dim=geo_feat_dim if cfg.geo_feat else 0,
+        top_k=cfg.top_k,
     )
 
 
@@ -207,57 +214,39 @@ class FeatureRayPool:
     xy: torch.Tensor  # [P, 2] pixel coordinates
 
 
-@torch.no_grad()
 def build_pool(
     views, template, sampler, cfg: FeaturesConfig, device, progress=True
 ) -> FeatureRayPool:
+    """Foreground rays of the training views with their top-k frozen-template samples."""
     pts_all, w_all, geo_all, view_all, xy_all = [], [], [], [], []
     g = np.random.default_rng(cfg.seed)
     for vi, (cam, _, mask) in enumerate(tqdm(views, desc="feature rays", disable=not progress)):
-        o, d = cam.rays()  # [H*W, 3]
         pix = cam.pixel_grid().astype(np.float32)  # [H*W, 2]
-        o, d = torch.from_numpy(o).to(device), torch.from_numpy(d).to(device)
-        hits = sampler.cast(o, d)
-        keep = hits.hit.cpu().numpy()
         if mask is not None:
-            keep &= mask.reshape(-1)
-        idx = np.nonzero(keep)[0]
-        if cfg.max_rays_per_view and len(idx) > cfg.max_rays_per_view:
-            idx = np.sort(g.choice(idx, cfg.max_rays_per_view, replace=False))
-        if len(idx) == 0:
+            pix = pix[mask.reshape(-1)]
+        if cfg.max_rays_per_view and len(pix) > cfg.max_rays_per_view:
+            pix = pix[np.sort(g.choice(len(pix), cfg.max_rays_per_view, replace=False))]
+        if len(pix) == 0:
             continue
-        for start in range(0, len(idx), cfg.eval_chunk):
-            sel = torch.from_numpy(idx[start : start + cfg.eval_chunk]).to(device)
-            sub = hits[sel]
-            t, delta = sampler.sample(sub, False)  # [r, S]
-            p = o[sel, None, :] + d[sel, None, :] * t[..., None]  # [r, S, 3]
-            sigma, geo = template.geometry(p.reshape(-1, 3))
-            w = volume.render_weights(sigma.view(t.shape), t, delta=delta)  # [r, S]
-            k = min(cfg.top_k, t.shape[1])
-            wk, ik = torch.topk(w, k, dim=1)  # [r, k]
-            if mask is None:  # no masks: the template's opacity decides what is foreground
-                fg = w.sum(1) > 0.5
-            else:
-                fg = torch.ones(len(sel), dtype=torch.bool, device=device)
-            pts_all.append(torch.gather(p, 1, ik[..., None].expand(-1, -1, 3))[fg].cpu())
-            w_all.append(wk[fg].cpu())
-            if cfg.geo_feat:
-                gf = geo.view(*t.shape, -1)
-                gk = torch.gather(gf, 1, ik[..., None].expand(-1, -1, gf.shape[-1]))
-                geo_all.append(gk[fg].half().cpu())
-            view_all.append(torch.full((int(fg.sum()),), vi, dtype=torch.long))
-            sel_np = sel.cpu().numpy()[fg.cpu().numpy()]
-            xy_all.append(torch.from_numpy(pix[sel_np]))
-    if not pts_all:
+        o, d = (torch.from_numpy(a).to(device) for a in cam.rays(pix))
+        s = top_k_samples(template, sampler, o, d, cfg.top_k, cfg.geo_feat)
+        keep = s.opacity > 0.5 if mask is None else torch.ones_like(s.opacity, dtype=torch.bool)
+        pts_all.append(s.points[keep])
+        w_all.append(s.weights[keep])
+        if cfg.geo_feat:
+            geo_all.append(s.geo[keep].half())
+        view_all.append(torch.full((int(keep.sum()),), vi, dtype=torch.long, device=device))
+        xy_all.append(torch.from_numpy(pix).to(device)[s.ray[keep]])
+    if not pts_all or sum(len(w) for w in w_all) == 0:
         raise SineError(
             "no foreground training ray hits the proxy mesh; check masks/ and the proxy"
         )
     return FeatureRayPool(
-        torch.cat(pts_all).to(device),
-        torch.cat(w_all).to(device),
-        torch.cat(geo_all).to(device) if geo_all else None,
-        torch.cat(view_all).to(device),
-        torch.cat(xy_all).to(device),
+        torch.cat(pts_all),
+        torch.cat(w_all),
+        torch.cat(geo_all) if geo_all else None,
+        torch.cat(view_all),
+        torch.cat(xy_all),
     )
 
 
@@ -287,12 +276,8 @@ def load_template_and_sampler(run: RunDir, device):
 # ---- training -----------------------------------------------------------------------------
 def _render(field, pool: FeatureRayPool, idx: torch.Tensor) -> torch.Tensor:
     """Rendered PCA coefficients [B, D] of pool rays idx (composite / opacity)."""
-    pts = pool.points[idx]  # [B, k, 3]
-    w = pool.weights[idx]  # [B, k]
-    geo = pool.geo[idx].reshape(-1, pool.geo.shape[-1]) if pool.geo is not None else None
-    f = field(pts.reshape(-1, 3), geo).view(*w.shape, -1)  # [B, k, D]
-    comp = volume.composite(w, {"feat": f})["feat"]  # [B, D]
-    return comp / volume.opacity(w).clamp_min(1e-3)[:, None]
+    geo = pool.geo[idx] if pool.geo is not None else None
+    return composite_features(field, pool.points[idx], pool.weights[idx], geo)
 
 
 def distill_features(
@@ -473,7 +458,7 @@ def evaluate(field, template, sampler, views, dino_feats, device, cfg, preview_d
     cos_field, cos_pca, cos_centred, rel = [], [], [], []
     lo = hi = None
     for i, (cam, image, mask) in enumerate(views):
-        out = render_feature_map(cam, template, field, sampler, cfg.eval_chunk, device)
+        out = render_feature_map(cam, template, field, sampler, None, cfg.eval_chunk, device)
         target = F.interpolate(
             dino_feats[i : i + 1], size=image.shape[:2], mode="bilinear", align_corners=False
         )

@@ -16,8 +16,9 @@ import numpy as np
 import torch
 from torch import nn
 
+from render import volume
 from render.hashgrid import HashGrid, HashGridConfig
-from render.renderer import FieldQuery, render_image
+from render.renderer import FieldQuery
 from render.template_field import mlp
 
 
@@ -36,6 +37,7 @@ class FeatureFieldConfig:
     hidden: int = 64  # hidden width of the MLP
     hidden_layers: int = 2  # hidden layers of the MLP
     geo_feat_dim: int = 0  # > 0: the template's geometry feature is an extra input
+    top_k: int = 8  # samples composited per ray (largest template weights), training = rendering
 
 
 class FeatureField(nn.Module):
@@ -85,7 +87,8 @@ class FeatureField(nn.Module):
 
 
 def feature_query(template: nn.Module, features: FeatureField) -> FieldQuery:
-    """A FieldQuery for `render.renderer`: the frozen template's density + a "feat" channel."""
+    """A FieldQuery for `render.renderer`: the frozen template's density + a "feat" channel
+    (every sample queries the feature field; `render_feature_map` keeps the top-k only)."""
 
     def query(points: torch.Tensor, dirs: torch.Tensor) -> dict[str, torch.Tensor]:
         with torch.no_grad():
@@ -95,29 +98,104 @@ def feature_query(template: nn.Module, features: FeatureField) -> FieldQuery:
     return query
 
 
+@dataclass
+class TopKSamples:
+    """Per ray, the k samples with the largest frozen-template weights."""
+
+    ray: torch.Tensor  # [r] index of the ray among those cast
+    points: torch.Tensor  # [r, k, 3]
+    weights: torch.Tensor  # [r, k]
+    geo: torch.Tensor | None  # [r, k, G] template geometry features (if asked for)
+    opacity: torch.Tensor  # [r] sum of all the ray's weights
+
+
+@torch.no_grad()
+def top_k_samples(
+    template: nn.Module,
+    sampler,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    k: int,
+    with_geo: bool = False,
+    chunk: int = 4096,
+) -> TopKSamples:
+    """Rays [R, 3] -> top-k samples of the rays that need the field (the sampler's hits)."""
+    hits = sampler.cast(origins, dirs)
+    idx = torch.nonzero(hits.hit)[:, 0]  # [r]
+    parts = []
+    for s in range(0, len(idx), chunk):
+        sel = idx[s : s + chunk]
+        t, delta = sampler.sample(hits[sel], False)  # [c, S]
+        p = origins[sel, None, :] + dirs[sel, None, :] * t[..., None]  # [c, S, 3]
+        sigma, geo = template.geometry(p.reshape(-1, 3))
+        w = volume.render_weights(sigma.view(t.shape), t, delta=delta)  # [c, S]
+        wk, ik = torch.topk(w, min(k, t.shape[1]), dim=1)  # [c, k]
+        pk = torch.gather(p, 1, ik[..., None].expand(-1, -1, 3))
+        gk = None
+        if with_geo:
+            g = geo.view(*t.shape, -1)
+            gk = torch.gather(g, 1, ik[..., None].expand(-1, -1, g.shape[-1]))
+        parts.append((pk, wk, gk, volume.opacity(w)))
+    if not parts:
+        z = origins.new_zeros
+        return TopKSamples(idx, z(0, k, 3), z(0, k), z(0, k, 0) if with_geo else None, z(0))
+    return TopKSamples(
+        idx,
+        torch.cat([q[0] for q in parts]),
+        torch.cat([q[1] for q in parts]),
+        torch.cat([q[2] for q in parts]) if with_geo else None,
+        torch.cat([q[3] for q in parts]),
+    )
+
+
+def composite_features(
+    features: FeatureField,
+    points: torch.Tensor,
+    weights: torch.Tensor,
+    geo: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Top-k samples (points [r, k, 3], weights [r, k]) -> rendered coefficients [r, D]:
+    composite(weights, field(points)) / sum of the weights."""
+    g = geo.reshape(-1, geo.shape[-1]) if geo is not None and features.cfg.geo_feat_dim else None
+    f = features(points.reshape(-1, 3), g).view(*weights.shape, -1)  # [r, k, D]
+    comp = volume.composite(weights, {"feat": f})["feat"]  # [r, D]
+    return comp / volume.opacity(weights).clamp_min(1e-3)[:, None]
+
+
 def render_feature_map(
     camera,
     template: nn.Module,
     features: FeatureField,
     sampler,
-    chunk: int = 16384,
+    top_k: int | None = None,
+    chunk: int = 4096,
     device: torch.device | None = None,
     decode: bool = True,
     min_opacity: float = 1e-3,
 ) -> dict[str, np.ndarray]:
     """One camera -> {"features" [H, W, C] (decoded, or [H, W, D] coefficients without decode),
-    "opacity" [H, W]}: the composited feature divided by the opacity (0 where the opacity is below
-    `min_opacity`)."""
-    out = render_image(camera, feature_query(template, features), sampler, None, chunk, device)
-    acc = out["opacity"]  # [H, W]
-    coeffs = out["feat"] / np.maximum(acc, min_opacity)[..., None]  # [H, W, D]
-    fg = acc >= min_opacity
-    if decode:
-        with torch.no_grad():
-            dec = features.decode(torch.from_numpy(coeffs).to(features.mean.device))
-        coeffs = dec.cpu().numpy()
-    coeffs = np.where(fg[..., None], coeffs, 0.0).astype(np.float32)
-    return {"features": coeffs, "opacity": acc}
+    "opacity" [H, W]}: features composited from the top-k samples per ray (default: as in
+    training) and
+    divided by their weight (0 where the opacity is below `min_opacity`)."""
+    device = device or features.mean.device
+    top_k = top_k or features.cfg.top_k
+    o, d = (torch.from_numpy(a).to(device) for a in camera.rays())  # [R, 3]
+    s = top_k_samples(template, sampler, o, d, top_k, bool(features.cfg.geo_feat_dim), chunk)
+    with torch.no_grad():
+        coeffs = torch.zeros(len(o), features.cfg.out_dim, device=device)  # [R, D]
+        for a in range(0, len(s.ray), chunk):
+            b = slice(a, a + chunk)
+            geo = s.geo[b] if s.geo is not None else None
+            coeffs[s.ray[b]] = composite_features(features, s.points[b], s.weights[b], geo)
+        acc = torch.zeros(len(o), device=device).index_put((s.ray,), s.opacity)  # [R]
+        fg = acc >= min_opacity
+        out = features.decode(coeffs) if decode else coeffs
+        out = torch.where(fg[:, None], out, torch.zeros_like(out))
+    h, w = camera.height, camera.width
+    return {
+        "features": out.reshape(h, w, -1).cpu().numpy().astype(np.float32),
+        "opacity": acc.reshape(h, w).cpu().numpy(),
+    }
 
 
 def pca_rgb(

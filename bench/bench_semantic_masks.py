@@ -1,0 +1,158 @@
+"""Semantic masks end to end: synth -> recon (known poses) -> fit -> features -> masks, per part.
+
+The procedural toycar (parts: body, cabin, wheels) is rendered as a turntable with ground-truth
+part labels; one part is painted in the editing view (its GT label, eroded by a few pixels, as a
+user's stroke would stay inside the part); `sine masks` computes masks in every view, compared
+with that part's GT pixels. Prints per-part IoU / precision / recall (mean over the held-out test
+views, which the feature field never saw, and over every other view) and the stage timings.
+
+    .venv/bin/python bench/bench_semantic_masks.py [--work /tmp/sine_bench_masks] [--views 36]
+        [--size 256] [--fit-iterations 300] [--feature-iterations 600] [--edit-view 2]
+
+Finished stages are reused when re-run with the same --work folder (delete it to start over).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch: see sine_cli.py
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def stage(name: str, timings: dict, fn, *args, **kwargs):
+    t0 = time.perf_counter()
+    out = fn(*args, **kwargs)
+    timings[name] = time.perf_counter() - t0
+    print(f"[bench] {name}: {timings[name]:.1f} s", flush=True)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--work", type=Path, default=Path("/tmp/sine_bench_masks"), help="work folder")
+    ap.add_argument("--views", type=int, default=36, help="turntable views")
+    ap.add_argument("--size", type=int, default=256, help="image width = height")
+    ap.add_argument("--fit-iterations", type=int, default=300, help="template fit steps")
+    ap.add_argument("--fit-table", type=int, default=15, help="template log2 hash-table size")
+    ap.add_argument("--feature-iterations", type=int, default=600, help="feature field steps")
+    ap.add_argument("--short-side", type=int, default=224, help="DINO input short side")
+    ap.add_argument("--geo-feat", action="store_true", help="feature MLP also sees geo_feat")
+    ap.add_argument("--space", default="centred", choices=["centred", "dino"], help="mask space")
+    ap.add_argument("--edit-view", type=int, default=2, help="index of the editing view")
+    ap.add_argument("--erode", type=int, default=2, help="erode the painted GT part by N pixels")
+    ap.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
+    args = ap.parse_args()
+
+    import cv2
+    import torch
+
+    from edit.masks_cli import MasksConfig, semantic_masks
+    from recon.features import FeaturesConfig, distill_features
+    from recon.fit import FitConfig, fit_template
+    from recon.ingest import IngestConfig
+    from recon.pipeline import ReconConfig, run_recon
+    from recon.rundir import RunDir
+    from recon.synth import SynthConfig, synthesize
+    from render.io import read_json, read_label_map
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    work = args.work
+    synth_dir, run = work / "synth", RunDir(work / "run")
+    timings: dict[str, float] = {}
+    if not (synth_dir / "parts.json").is_file():
+        cfg = SynthConfig(
+            out=synth_dir, procedural="toycar", views=args.views, width=args.size, height=args.size
+        )
+        stage("synth", timings, synthesize, cfg, progress=False)
+    if not run.proxy_mesh.is_file():
+        stage(
+            "recon",
+            timings,
+            run_recon,
+            synth_dir,
+            run,
+            ReconConfig(),
+            IngestConfig(width=args.size),
+        )
+    fit_cfg = FitConfig(iterations=args.fit_iterations, log2_table=args.fit_table, previews=0)
+    fit = stage("fit", timings, fit_template, run.root, fit_cfg, progress=False)
+    feat_cfg = FeaturesConfig(
+        iterations=args.feature_iterations, short_side=args.short_side, geo_feat=args.geo_feat
+    )
+    feats = stage("features", timings, distill_features, run.root, feat_cfg, progress=False)
+
+    parts = {int(k): v for k, v in read_json(synth_dir / "parts.json").items()}
+    cams = run.load_cameras().frames
+    edit = cams[args.edit_view]
+    labels = {
+        c.name: read_label_map(synth_dir / "labels" / (Path(c.name).stem + ".png")) for c in cams
+    }
+    kernel = np.ones((2 * args.erode + 1, 2 * args.erode + 1), np.uint8)
+    rows = []
+    for part, name in parts.items():
+        region = labels[edit.name] == part
+        if args.erode:
+            region = cv2.erode(region.astype(np.uint8), kernel) > 0
+        out = work / "masks" / name
+        t0 = time.perf_counter()
+        m = semantic_masks(
+            run.root, args.edit_view, region, out, MasksConfig(space=args.space), progress=False
+        )
+        seconds = time.perf_counter() - t0
+        stats: dict[str, list] = {"test": [], "all": []}
+        for c in cams:
+            if c.name == edit.name:
+                continue
+            mask = cv2.imread(str(out / "masks" / (Path(c.name).stem + ".png")), 0) > 0
+            gt = labels[c.name] == part
+            inter, union = (mask & gt).sum(), (mask | gt).sum()
+            s = (inter / max(union, 1), inter / max(mask.sum(), 1), inter / max(gt.sum(), 1))
+            stats["all"].append(s)
+            if c.split != "train":
+                stats["test"].append(s)
+        test, every = np.mean(stats["test"], axis=0), np.array(stats["all"])
+        rows.append(
+            (name, int(region.sum()), *test, every[:, 0].mean(), every[:, 0].min(), seconds, m)
+        )
+
+    print(
+        f"\nsemantic masks: toycar {args.views} views {args.size}x{args.size}, editing view "
+        f"{edit.name}, painted = GT part eroded {args.erode} px, space {args.space}, DINO short "
+        f"side {args.short_side}, K=15, 1000 samples, threshold 0.5"
+    )
+    print(
+        f"{'part':<8} {'painted px':>10} {'IoU test':>9} {'prec test':>9} {'rec test':>9} "
+        f"{'IoU all':>8} {'IoU min':>8} {'masks s':>8}"
+    )
+    for name, px, iou, prec, rec, iou_all, iou_min, seconds, _ in rows:
+        print(
+            f"{name:<8} {px:>10} {iou:>9.3f} {prec:>9.3f} {rec:>9.3f} {iou_all:>8.3f} "
+            f"{iou_min:>8.3f} {seconds:>8.1f}"
+        )
+    n_test = sum(1 for c in cams if c.split != "train" and c.name != edit.name)
+    print(f"(test = the {n_test} held-out views; all = every view but the editing view)")
+    print("\ntimings (s; this run, finished stages reused show as absent)")
+    for key, value in timings.items():
+        print(f"  {key:<10} {value:8.1f}")
+    print(
+        f"  fit: held-out PSNR {fit.get('heldout_psnr', float('nan')):.2f} dB; features: DINO "
+        f"{feats['dino_seconds']:.1f} s, ray pool {feats['pool_seconds']:.1f} s, training "
+        f"{feats['train_seconds']:.1f} s ({feats['iterations']} steps), held-out rel. error "
+        f"{feats['heldout_rel_error']:.3f}, centred cosine {feats['heldout_centred_cosine']:.3f}"
+    )
+    per_view = np.mean([r[-1]["seconds_per_view"] for r in rows])
+    print(f"  masks: {per_view:.2f} s per view (feature render + distances)")
+
+
+if __name__ == "__main__":
+    main()
