@@ -1,7 +1,8 @@
 """Per-view depth maps (depth/<stem>.npy, float32 camera z in run units, 0 = none).
 
 Sources (the one used is written to recon_report.json as `depth_source`; `depth_method` of
-`sine recon` chooses, "auto" = the first that applies):
+`sine recon` chooses; "auto" = "dataset" when every view has depth, else "visual_hull+stereo",
+which measured better than the hull alone: bench/RESULTS.md, Reconstruction):
 - "dataset": every view already has depth from the capture (copied by ingest; rescaled into the
   run frame when the poses/normalisation changed units) -> kept as it is.
 - "visual_hull": the visual hull is carved from all masks + cameras at `resolution` voxels

@@ -94,7 +94,7 @@ class ReconConfig:
         "auto",
         "depth: dataset = the capture's depth maps; visual_hull; visual_hull+stereo = hull depth "
         "refined by two-view SGBM stereo where consistent (concavities); auto = dataset when "
-        "every view has depth, else visual_hull",
+        "every view has depth, else visual_hull+stereo",
         choices=["auto", "dataset", "visual_hull", "visual_hull+stereo"],
     )
     stereo_max_behind: float = option(
@@ -340,7 +340,7 @@ class Pipeline:
             cams, masks, self.cfg.hull_resolution, self.cfg.hull_tolerance, hull=hull
         )
         source = "visual_hull"
-        if method == "visual_hull+stereo":
+        if method in ("auto", "visual_hull+stereo"):
             from recon.depth import hull_stereo_depth
             from render.io import read_image
 

@@ -6,6 +6,8 @@ gives, e.g. from the visual hull), a left-right consistency check (the right mat
 `cv2.ximgproc`), disparities outside either silhouette dropped, and the result converted to
 camera-z depth on the ORIGINAL view's pixel grid (each original pixel samples the rectified
 disparity at its rectified position; nearest, so depth never mixes across edges).
+Rectification keeps separate principal points (no CALIB_ZERO_DISPARITY): with a long lens the
+zero-disparity layout would push a converging pair's object out of the overlap.
 Pixel convention: ours puts pixel centres at +0.5, OpenCV's at integers (K shifted by 0.5).
 """
 
@@ -85,15 +87,35 @@ def pair_depth(
     R, T = rel[:3, :3].copy(), rel[:3, 3].reshape(3, 1).copy()
     Ka, Kb = _cv_K(cam_a), _cv_K(cam_b)
     zero = np.zeros((1, 5))
-    R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(
-        Ka, zero, Kb, zero, size, R, T, flags=cv2.CALIB_ZERO_DISPARITY, alpha=-1
-    )
+    # no CALIB_ZERO_DISPARITY: each rectified image keeps its own principal point, so a converging
+    # pair (both cameras look at the object) sees it near the same place: small disparities.
+    R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(Ka, zero, Kb, zero, size, R, T, flags=0, alpha=-1)
     if abs(P2[1, 3]) > abs(P2[0, 3]):
         return np.zeros((h, w), np.float32)  # vertical pair: not handled (ring neighbours are not)
     f_rect = float(P1[0, 0])
     baseline = float(-P2[0, 3] / P2[0, 0])  # > 0: b is to the right of a (rectified x)
     flip = baseline < 0  # mirror both images so that a is the left image for SGBM
     baseline = abs(baseline)
+    # SGBM disparity d = f B / z + offset (x_a - x_b = f B / z + (cx_a - cx_b), mirrored: negated)
+    offset = float(P1[0, 2] - P2[0, 2]) * (-1.0 if flip else 1.0)
+    if not (np.isfinite(f_rect) and f_rect > 0 and baseline > 0):
+        return np.zeros((h, w), np.float32)
+    # disparity range from the depth range (rectified z ~ camera z for small rectifying rotations;
+    # widened by 20 % against that approximation).
+    near, far = z_range
+    d_min = f_rect * baseline / (far * 1.2) + offset
+    # keep SGBM's disparities positive (its sub-pixel step is biased for negative ones, measured
+    # ~0.3 px): shift b's rectified principal point by whole pixels.
+    shift = max(0, int(np.ceil(2.0 - d_min)))
+    P2 = P2.copy()
+    P2[0, 2] += shift if flip else -shift
+    offset += shift
+    d_min += shift
+    d_max = f_rect * baseline / max(near * 0.8, 1e-9) + offset
+    min_disp = int(np.floor(d_min))
+    num = int(np.ceil((d_max - min_disp + 1) / 16.0) * 16)
+    if num <= 0 or num > 16 * 16:  # a degenerate pair (or a huge range): no stereo
+        return np.zeros((h, w), np.float32)
     maps_a = cv2.initUndistortRectifyMap(Ka, zero, R1, P1, size, cv2.CV_32FC1)
     maps_b = cv2.initUndistortRectifyMap(Kb, zero, R2, P2, size, cv2.CV_32FC1)
     left = cv2.remap(_gray(image_a), *maps_a, cv2.INTER_LINEAR)
@@ -103,17 +125,6 @@ def pair_depth(
     if flip:
         left, right = left[:, ::-1].copy(), right[:, ::-1].copy()
         m_left, m_right = m_left[:, ::-1], m_right[:, ::-1]
-
-    # disparity range from the depth range (rectified z ~ camera z for small rectifying rotations;
-    # widened by 20 % against that approximation).
-    near, far = z_range
-    d_max = f_rect * baseline / max(near * 0.8, 1e-9)
-    d_min = f_rect * baseline / (far * 1.2)
-    # with CALIB_ZERO_DISPARITY the principal points agree: disparity = f B / z exactly.
-    min_disp = int(np.floor(d_min))
-    num = int(np.ceil((d_max - min_disp + 1) / 16.0) * 16)
-    if num <= 0 or num > 16 * 32:
-        return np.zeros((h, w), np.float32)
     bs = params.block_size
     sgbm = cv2.StereoSGBM_create(
         minDisparity=min_disp,
@@ -130,7 +141,7 @@ def pair_depth(
     disp_l = sgbm.compute(left, right).astype(np.float32) / 16.0  # [H, W]
     right_matcher = cv2.ximgproc.createRightMatcher(sgbm)
     disp_r = right_matcher.compute(right, left).astype(np.float32) / 16.0  # negative values
-    valid = (disp_l > min_disp - 0.5) & m_left
+    valid = (disp_l > min_disp - 0.5) & (disp_l - offset > 0) & m_left
     rows, cols = np.nonzero(valid)
     xr = np.round(cols - disp_l[rows, cols]).astype(int)
     ok = (xr >= 0) & (xr < w)
@@ -139,7 +150,7 @@ def pair_depth(
     consistent = np.abs(disp_l[r2, c2] + disp_r[r2, x2]) <= params.lr_max_diff
     consistent &= m_right[r2, x2]
     good[r2[consistent], c2[consistent]] = True
-    disp = np.where(good, disp_l, 0.0)
+    disp = np.where(good, disp_l - offset, 0.0)  # f B / z
     if flip:
         disp = disp[:, ::-1]
 
@@ -177,12 +188,23 @@ def stereo_depth(
     """Depth [H, W] of view i from its (up to two) neighbours; where both answer they must agree
     within `agree` (run units) and are averaged; 0 = no answer."""
     params = params or StereoParams()
-    maps = [
-        pair_depth(
-            cameras[i], cameras[j], images[i], images[j], masks[i], masks[j], z_range, params
-        )
-        for j in neighbours(cameras, i, params)
-    ]
+    maps = []
+    for j in neighbours(cameras, i, params):
+        try:
+            maps.append(
+                pair_depth(
+                    cameras[i],
+                    cameras[j],
+                    images[i],
+                    images[j],
+                    masks[i],
+                    masks[j],
+                    z_range,
+                    params,
+                )
+            )
+        except cv2.error:  # rectification/SGBM failed on this pair: stereo has no answer there
+            continue
     if not maps:
         return np.zeros(masks[i].shape, np.float32)
     if len(maps) == 1:

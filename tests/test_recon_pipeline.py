@@ -57,5 +57,6 @@ def test_recon_visual_hull_depth_when_capture_has_no_depth(capture, tmp_path):
         ReconConfig(target_triangles=5000, hull_resolution=96, hull_tolerance=0),
         IngestConfig(width=160),
     )
-    assert report["depth_source"] == "visual_hull"
+    assert report["depth_source"] == "visual_hull+stereo"  # auto: hull refined by stereo
+    assert 0.0 <= report["stereo_pixel_fraction"] <= 1.0
     assert report["silhouette_iou_mean"] > 0.85
