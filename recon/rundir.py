@@ -80,9 +80,13 @@ class RunDir:
     def require(self, what: str = "images") -> RunDir:
         """Fails with a clear message if this is not a run directory with `what` in it."""
         if not self.root.is_dir():
-            raise SineError(f"run directory {self.root} does not exist (create it with `sine ingest` or `sine recon`)")
+            raise SineError(
+                f"run directory {self.root} does not exist (create it with `sine ingest` or `sine recon`)"
+            )
         if what == "images" and not self.captures.is_file():
-            raise SineError(f"{self.root} is not a run directory (no captures.json); run `sine ingest` first")
+            raise SineError(
+                f"{self.root} is not a run directory (no captures.json); run `sine ingest` first"
+            )
         if what == "cameras" and not self.cameras.is_file():
             raise SineError(f"{self.root} has no cameras.json yet; run `sine recon` first")
         if what == "proxy_mesh" and not self.proxy_mesh.is_file():
@@ -109,6 +113,10 @@ class RunDir:
         existing = existing or {"stages": []}
         entry = to_dict(config) if not isinstance(config, dict) else config
         existing["stages"].append(
-            {"stage": stage, "time": datetime.datetime.now().isoformat(timespec="seconds"), "config": entry}
+            {
+                "stage": stage,
+                "time": datetime.datetime.now().isoformat(timespec="seconds"),
+                "config": entry,
+            }
         )
         write_yaml(self.config, existing)
