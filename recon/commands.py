@@ -2,21 +2,10 @@
 
 from __future__ import annotations
 
+from recon import features_cli, fit_cli, ingest_cli, recon_cli, synth_cli
+
 
 def register(sub) -> None:
-    """Adds this package's subcommands to the `sine` parser."""
-    # Each subcommand module exposes `add_parser(sub)`; they are filled in as stages land.
-    for module_name in (
-        "recon.ingest_cli",
-        "recon.synth_cli",
-        "recon.recon_cli",
-        "recon.fit_cli",
-        "recon.features_cli",
-    ):
-        try:
-            module = __import__(module_name, fromlist=["add_parser"])
-        except ModuleNotFoundError as exc:
-            if exc.name != module_name:
-                raise
-            continue
+    """Adds this package's subcommands to the `sine` parser (in pipeline order)."""
+    for module in (synth_cli, ingest_cli, recon_cli, fit_cli, features_cli):
         module.add_parser(sub)
