@@ -7,7 +7,7 @@ with that part's GT pixels. Prints per-part IoU / precision / recall (mean over 
 views, which the feature field never saw, and over every other view) and the stage timings.
 
     .venv/bin/python bench/bench_semantic_masks.py [--work /tmp/sine_bench_masks] [--views 36]
-        [--size 256] [--fit-iterations 300] [--feature-iterations 600] [--edit-view 2]
+        [--size 256] [--fit-iterations 300] [--feature-iterations 600] [--edit-views 2 11]
 
 Finished stages are reused when re-run with the same --work folder (delete it to start over).
 """
@@ -47,7 +47,9 @@ def main() -> None:
     ap.add_argument("--short-side", type=int, default=224, help="DINO input short side")
     ap.add_argument("--geo-feat", action="store_true", help="feature MLP also sees geo_feat")
     ap.add_argument("--space", default="centred", choices=["centred", "dino"], help="mask space")
-    ap.add_argument("--edit-view", type=int, default=2, help="index of the editing view")
+    ap.add_argument(
+        "--edit-views", type=int, nargs="+", default=[2, 11], help="indices of editing views"
+    )
     ap.add_argument("--erode", type=int, default=2, help="erode the painted GT part by N pixels")
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
     args = ap.parse_args()
@@ -93,54 +95,65 @@ def main() -> None:
 
     parts = {int(k): v for k, v in read_json(synth_dir / "parts.json").items()}
     cams = run.load_cameras().frames
-    edit = cams[args.edit_view]
     labels = {
         c.name: read_label_map(synth_dir / "labels" / (Path(c.name).stem + ".png")) for c in cams
     }
     kernel = np.ones((2 * args.erode + 1, 2 * args.erode + 1), np.uint8)
-    rows = []
-    for part, name in parts.items():
-        region = labels[edit.name] == part
-        if args.erode:
-            region = cv2.erode(region.astype(np.uint8), kernel) > 0
-        out = work / "masks" / name
-        t0 = time.perf_counter()
-        m = semantic_masks(
-            run.root, args.edit_view, region, out, MasksConfig(space=args.space), progress=False
-        )
-        seconds = time.perf_counter() - t0
-        stats: dict[str, list] = {"test": [], "all": []}
-        for c in cams:
-            if c.name == edit.name:
-                continue
-            mask = cv2.imread(str(out / "masks" / (Path(c.name).stem + ".png")), 0) > 0
-            gt = labels[c.name] == part
-            inter, union = (mask & gt).sum(), (mask | gt).sum()
-            s = (inter / max(union, 1), inter / max(mask.sum(), 1), inter / max(gt.sum(), 1))
-            stats["all"].append(s)
-            if c.split != "train":
-                stats["test"].append(s)
-        test, every = np.mean(stats["test"], axis=0), np.array(stats["all"])
-        rows.append(
-            (name, int(region.sum()), *test, every[:, 0].mean(), every[:, 0].min(), seconds, m)
-        )
+    rows, per_view = [], []
+    for ev in args.edit_views:
+        edit = cams[ev]
+        for part, name in parts.items():
+            region = labels[edit.name] == part
+            if args.erode:
+                region = cv2.erode(region.astype(np.uint8), kernel) > 0
+            out = work / "masks" / f"{Path(edit.name).stem}_{name}"
+            t0 = time.perf_counter()
+            m = semantic_masks(
+                run.root, ev, region, out, MasksConfig(space=args.space), progress=False
+            )
+            seconds = time.perf_counter() - t0
+            per_view.append(m["seconds_per_view"])
+            stats: dict[str, list] = {"test": [], "all": []}
+            for c in cams:
+                if c.name == edit.name:
+                    continue
+                mask = cv2.imread(str(out / "masks" / (Path(c.name).stem + ".png")), 0) > 0
+                gt = labels[c.name] == part
+                inter, union = (mask & gt).sum(), (mask | gt).sum()
+                s = (inter / max(union, 1), inter / max(mask.sum(), 1), inter / max(gt.sum(), 1))
+                stats["all"].append(s)
+                if c.split != "train":
+                    stats["test"].append(s)
+            test, every = np.mean(stats["test"], axis=0), np.array(stats["all"])
+            rows.append(
+                (
+                    edit.name,
+                    name,
+                    int(region.sum()),
+                    *test,
+                    every[:, 0].mean(),
+                    every[:, 0].min(),
+                    seconds,
+                )
+            )
 
     print(
-        f"\nsemantic masks: toycar {args.views} views {args.size}x{args.size}, editing view "
-        f"{edit.name}, painted = GT part eroded {args.erode} px, space {args.space}, DINO short "
-        f"side {args.short_side}, K=15, 1000 samples, threshold 0.5"
+        f"\nsemantic masks: toycar {args.views} views {args.size}x{args.size}, painted = GT part "
+        f"eroded {args.erode} px, space {args.space}, DINO short side {args.short_side}, "
+        f"geo_feat {args.geo_feat}, K=15, 1000 samples, threshold 0.5"
     )
     print(
-        f"{'part':<8} {'painted px':>10} {'IoU test':>9} {'prec test':>9} {'rec test':>9} "
-        f"{'IoU all':>8} {'IoU min':>8} {'masks s':>8}"
+        f"{'edit view':<10} {'part':<8} {'painted':>8} {'IoU test':>9} {'prec test':>9} "
+        f"{'rec test':>9} {'IoU all':>8} {'IoU min':>8} {'masks s':>8}"
     )
-    for name, px, iou, prec, rec, iou_all, iou_min, seconds, _ in rows:
+    for view, name, px, iou, prec, rec, iou_all, iou_min, seconds in rows:
         print(
-            f"{name:<8} {px:>10} {iou:>9.3f} {prec:>9.3f} {rec:>9.3f} {iou_all:>8.3f} "
+            f"{view:<10} {name:<8} {px:>8} {iou:>9.3f} {prec:>9.3f} {rec:>9.3f} {iou_all:>8.3f} "
             f"{iou_min:>8.3f} {seconds:>8.1f}"
         )
-    n_test = sum(1 for c in cams if c.split != "train" and c.name != edit.name)
-    print(f"(test = the {n_test} held-out views; all = every view but the editing view)")
+    n_test = sum(1 for c in cams if c.split != "train")
+    print(f"(test: the {n_test} held-out views, never seen by the fit or the feature field;")
+    print(" all: every view but the editing view; painted: pixels of the painted region)")
     print("\ntimings (s; this run, finished stages reused show as absent)")
     for key, value in timings.items():
         print(f"  {key:<10} {value:8.1f}")
@@ -150,8 +163,7 @@ def main() -> None:
         f"{feats['train_seconds']:.1f} s ({feats['iterations']} steps), held-out rel. error "
         f"{feats['heldout_rel_error']:.3f}, centred cosine {feats['heldout_centred_cosine']:.3f}"
     )
-    per_view = np.mean([r[-1]["seconds_per_view"] for r in rows])
-    print(f"  masks: {per_view:.2f} s per view (feature render + distances)")
+    print(f"  masks: {np.mean(per_view):.2f} s per view (feature render + distances)")
 
 
 if __name__ == "__main__":

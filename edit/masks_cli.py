@@ -27,7 +27,7 @@ a pixel of any view editable when its normalised feature is close to a centre. W
 DIR/masks/<view>.png, DIR/overlay_contact_sheet.png, DIR/semantic_centres.npy and DIR/metrics.json.
 """
 
-TINT = np.array([1.0, 0.35, 0.0], np.float32)  # editable pixels in the contact sheet
+TINT = np.array([0.0, 0.9, 1.0], np.float32)  # editable pixels in the contact sheet (cyan)
 
 
 @dataclass
@@ -86,7 +86,8 @@ def load_region(path, camera) -> np.ndarray:
 
 
 def overlay(image: np.ndarray, mask: np.ndarray, tint: float, width: int, edit_view: bool):
-    """Thumbnail [h, width, 3] of `image` with `mask` tinted (a frame marks the editing view)."""
+    """Thumbnail [h, width, 3] of `image` with `mask` tinted cyan (a magenta frame marks the
+    editing view)."""
     import cv2
 
     h = max(1, round(image.shape[0] * width / image.shape[1]))
@@ -94,7 +95,7 @@ def overlay(image: np.ndarray, mask: np.ndarray, tint: float, width: int, edit_v
     small = cv2.resize(mask.astype(np.uint8), (width, h), interpolation=cv2.INTER_NEAREST) > 0
     tile[small] = (1 - tint) * tile[small] + tint * TINT
     if edit_view:
-        cv2.rectangle(tile, (0, 0), (width - 1, h - 1), (0.1, 0.4, 1.0), 2)
+        cv2.rectangle(tile, (0, 0), (width - 1, h - 1), (1.0, 0.1, 0.6), 2)
     return tile
 
 
