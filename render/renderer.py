@@ -104,7 +104,7 @@ def render_rays_chunked(
     chunk: int = 16384,
 ) -> dict[str, torch.Tensor]:
     """`render_rays` without gradients, `chunk` rays at a time; results concatenated."""
-    parts: dict[str, list[torch.Tensor]] = {}
+    chunks: list[dict[str, torch.Tensor]] = []
     samples = 0
     with torch.no_grad():
         for start in range(0, origins.shape[0], chunk):
@@ -116,9 +116,17 @@ def render_rays_chunked(
                 background,
             )
             samples += int(res.pop("samples"))
-            for k, v in res.items():
-                parts.setdefault(k, []).append(v)
-    out = {k: torch.cat(v) for k, v in parts.items()}
+            chunks.append(res)
+    # A chunk where no ray hits has no extra channels (their width is unknown there): zeros.
+    widths = {k: v.shape[1:] for res in chunks for k, v in res.items()}
+    out = {}
+    for k, shape in widths.items():
+        out[k] = torch.cat(
+            [
+                res[k] if k in res else res["opacity"].new_zeros((len(res["opacity"]), *shape))
+                for res in chunks
+            ]
+        )
     out["samples"] = torch.tensor(samples)
     return out
 

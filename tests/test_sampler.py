@@ -154,3 +154,36 @@ def test_render_image_shapes():
     assert img["feat"].shape == (12, 16, 1)
     assert abs(img["opacity"][6, 8] - 1.0) < 1e-3 and img["opacity"][0, 0] == 0.0
     assert abs(img["z"][6, 8] - 2.5) < 0.02
+
+
+def test_chunked_render_keeps_extra_channels_of_chunks_without_hits():
+    """A chunk whose rays all miss still contributes zero rows to every extra channel."""
+    import torch
+
+    from render.renderer import render_rays_chunked
+
+    class Hits:
+        def __init__(self, hit):
+            self.hit = hit
+
+        def __getitem__(self, idx):
+            return Hits(self.hit[idx])
+
+    class HalfSampler:  # the first 4 rays miss, the last 4 hit (a delta sample at t = 1)
+        def cast(self, origins, dirs):
+            return Hits(origins[:, 0] > 0)
+
+        def sample(self, hits, perturb, generator):
+            n = len(hits.hit)
+            return torch.ones(n, 1), torch.full((n, 1), 1e10)
+
+    def query(points, dirs):
+        n = len(points)
+        return {"sigma": torch.full((n,), 50.0), "rgb": torch.ones(n, 3), "feat": torch.ones(n, 5)}
+
+    origins = torch.tensor([[-1.0, 0, 0]] * 4 + [[1.0, 0, 0]] * 4)
+    dirs = torch.tensor([[0, 0, 1.0]] * 8)
+    out = render_rays_chunked(query, origins, dirs, HalfSampler(), background=(0, 0, 0), chunk=4)
+    assert out["feat"].shape == (8, 5)
+    assert torch.all(out["feat"][:4] == 0) and torch.allclose(out["feat"][4:], torch.ones(4, 5))
+    assert torch.all(out["opacity"][:4] == 0) and torch.allclose(out["opacity"][4:], torch.ones(4))
