@@ -28,8 +28,10 @@ class DemoConfig:
     views: int = option(36, "turntable views to render")
     width: int = option(256, "image width in pixels")
     height: int = option(256, "image height in pixels")
-    paint_part: str = option("wheels", "part painted in the editing view for the semantic masks")
-    edit_view: int = option(2, "index of the editing view (the one the user would paint)")
+    paint_part: str = option(
+        "cabin", "part painted in the editing view (the GT geometric edit stretches the cabin)"
+    )
+    edit_view: int = option(11, "index of the editing view (the one the user would paint)")
     device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
     force: bool = option(False, "redo every stage instead of resuming finished ones")
 

@@ -496,13 +496,17 @@ def ring_cameras(
     """`n` cameras on rings around +z looking at the origin (image up ~ +z).
 
     Views are split into contiguous blocks, one ring per elevation, azimuths evenly spaced (rings
-    interleaved). Every `test_every`-th view (0, 8, 16, ...) has split "test".
+    interleaved). Every `test_every`-th view (1-based: r_007, r_015, ...) has split "test",
+    the same rule as `sine ingest` (recon.ingest.assign_splits), so held-out views agree.
     """
+    from recon.ingest import assign_splits
+
     elevations = [float(e) for e in elevations_deg] or [20.0]
     if n < len(elevations):
         raise SineError(f"{n} views cannot cover {len(elevations)} elevations")
     f = focal_from_fov(width, height, fov_deg)
     cams = []
+    splits = assign_splits(n, test_every)
     blocks = np.array_split(np.arange(n), len(elevations))
     for ring, (elev, block) in enumerate(zip(elevations, blocks, strict=True)):
         m = len(block)
@@ -520,7 +524,7 @@ def ring_cameras(
                     height / 2.0,
                     camera_to_world=look_at(eye, np.zeros(3)),
                     name=f"r_{i:03d}.png",
-                    split="test" if test_every and i % test_every == 0 else "train",
+                    split=splits[i],
                 )
             )
     return cams

@@ -163,7 +163,7 @@ def test_transforms_parse_back_to_the_same_cameras(toycar):
         for key in ("file_path", "mask_path", "depth_file_path", "label_path"):
             assert (toycar / frame[key]).is_file()
         assert frame["split"] == ref.split
-    assert [c.split for c in cams] == ["test"] + ["train"] * 7
+    assert [c.split for c in cams] == ["train"] * 7 + ["test"]  # the same rule as ingest
 
 
 # ---- cameras ----------------------------------------------------------------------------
