@@ -243,17 +243,7 @@ def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
 
 def camera_from_projection(P: np.ndarray, width: int, height: int, name: str = "") -> Camera:
     """A Camera from a 3x4 projection matrix (skew is dropped; metric P expected)."""
-    K, R, t = decompose_projection(P)
-    return Camera(
-        width,
-        height,
-        K[0, 0],
-        K[1, 1],
-        K[0, 2],
-        K[1, 2],
-        camera_to_world=pose_from_rt(R, t),
-        name=name,
-    )
+    return camera_from_krt(*decompose_projection(P), width, height, name)
 
 
 # ---- NeRF / nerfstudio transforms.json ----------------------------------------------------
