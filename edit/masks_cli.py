@@ -122,8 +122,8 @@ def semantic_masks(
 
     from edit.semantic_masks import SemanticMaskConfig, SemanticMasks
     from recon.features import load_features
-    from recon.fit import pick_device
     from recon.rundir import RunDir
+    from render.device import pick_device
     from render.feature_field import render_feature_map
     from render.io import read_image, write_image, write_json, write_mask
 

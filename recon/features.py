@@ -26,9 +26,10 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from recon.fit import FitConfig, load_template, load_views, make_sampler, pick_device
+from recon.fit import FitConfig, load_template, load_views, make_sampler
 from recon.rundir import RunDir
 from render.configs import option, to_dict, update_from_dict
+from render.device import pick_device
 from render.errors import SineError
 from render.feature_field import (
     FeatureField,

@@ -27,6 +27,7 @@ from tqdm import tqdm
 
 from recon.rundir import RunDir
 from render.configs import option, to_dict
+from render.device import pick_device
 from render.errors import SineError
 from render.hashgrid import HashGridConfig
 from render.io import atomic_path, read_image, read_json, read_mask, write_image, write_json
@@ -76,14 +77,6 @@ class FitConfig:
 
 
 # ---- data ---------------------------------------------------------------------------------
-def pick_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise SineError("--device cuda requested but torch sees no CUDA device; use --device cpu")
-    return torch.device(name)
-
-
 def load_views(run: RunDir, split: str) -> list[tuple]:
     """[(camera, image [H, W, 3], mask [H, W] bool or None)] for the frames of `split`."""
     cams = run.load_cameras().frames
