@@ -44,7 +44,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("interrupted: finished artefacts and checkpoints are kept; re-run to resume", file=sys.stderr)
+        print(
+            "interrupted: finished artefacts and checkpoints are kept; re-run to resume",
+            file=sys.stderr,
+        )
         return 130
     return int(result or 0)
 
