@@ -29,7 +29,7 @@ from tqdm import tqdm
 from recon.fit import FitConfig, load_template, load_views, make_sampler
 from recon.rundir import RunDir
 from render.configs import option, to_dict, update_from_dict
-from render.device import pick_device
+from render.device import check_finite, pick_device
 from render.errors import SineError
 from render.feature_field import (
     FeatureField,
@@ -386,6 +386,7 @@ def distill_features(
         if cfg.cosine_weight > 0:
             cos = F.cosine_similarity(field.decode(pred), field.decode(target), dim=-1).mean()
             loss = loss + cfg.cosine_weight * (1.0 - cos)
+        check_finite(loss, step, "sine features", run.features)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()

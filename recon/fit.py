@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from recon.rundir import RunDir
 from render.configs import option, to_dict
-from render.device import pick_device
+from render.device import check_finite, pick_device
 from render.errors import SineError
 from render.hashgrid import HashGridConfig
 from render.io import atomic_path, read_image, read_json, read_mask, write_image, write_json
@@ -396,6 +396,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         if background.learnable and len(pool.miss_rgb):
             j = torch.randint(len(pool.miss_rgb), (256,), generator=generator).to(device)
             loss = loss + torch.mean((background()[None] - pool.miss_rgb[j]) ** 2)
+        check_finite(loss, step, "sine fit", run.template)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()

@@ -14,3 +14,14 @@ def pick_device(name: str = "auto") -> torch.device:
     if name == "cuda" and not torch.cuda.is_available():
         raise SineError("--device cuda requested but torch sees no CUDA device; use --device cpu")
     return torch.device(name)
+
+
+def check_finite(loss: torch.Tensor, step: int, stage: str, checkpoint_dir) -> None:
+    """Stops training with a readable message when the loss turns NaN/inf (nothing is lost:
+    the last checkpoint in `checkpoint_dir` stays as it was)."""
+    if not torch.isfinite(loss):
+        raise SineError(
+            f"{stage} diverged at step {step} (the loss is {loss.item()}); the last checkpoint in "
+            f"{checkpoint_dir} is kept. Re-run with lower learning rates (--lr-grid, --lr-mlp) "
+            "and --force, or re-run as is to resume from that checkpoint."
+        )
