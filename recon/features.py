@@ -26,9 +26,10 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from recon.fit import FitConfig, load_template, load_views, make_sampler
+from recon.fit import load_fitted, load_views, make_sampler
 from recon.rundir import RunDir
-from render.configs import option, to_dict, update_from_dict
+from recon.training import finished_metrics, restore_state, save_state
+from render.configs import option, to_dict
 from render.device import check_finite, pick_device
 from render.errors import SineError
 from render.feature_field import (
@@ -40,7 +41,7 @@ from render.feature_field import (
     top_k_samples,
 )
 from render.hashgrid import HashGridConfig
-from render.io import atomic_path, read_json, write_image, write_json
+from render.io import atomic_path, write_image, write_json
 
 
 @dataclass
@@ -88,13 +89,6 @@ _RUNTIME_KEYS = (
     "checkpoint_every",
     "batch_views",
 )
-
-
-def _same_settings(a: dict, b: dict) -> bool:
-    def strip(d):
-        return {k: v for k, v in d.items() if k not in _RUNTIME_KEYS}
-
-    return strip(a) == strip(b)
 
 
 def field_config(cfg: FeaturesConfig, feature_dim: int, geo_feat_dim: int) -> FeatureFieldConfig:
@@ -268,9 +262,7 @@ def load_features(run_dir, device: torch.device | None = None):
 
 def load_template_and_sampler(run: RunDir, device):
     """The frozen template and the sampler it was fitted with."""
-    template, _ = load_template(run.root, device)
-    data = torch.load(run.template / "field.pt", map_location="cpu", weights_only=False)
-    fit_cfg = update_from_dict(FitConfig, data.get("fit_config") or {})
+    template, _, fit_cfg = load_fitted(run.root, device)
     return template.requires_grad_(False), make_sampler(fit_cfg, run)
 
 
@@ -316,10 +308,12 @@ def distill_features(
     if force:
         for p in (ckpt_path, final_path, metrics_path):
             p.unlink(missing_ok=True)
-    elif metrics_path.is_file() and final_path.is_file() and ckpt_path.is_file():
-        done = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        if done["step"] >= cfg.iterations and _same_settings(done["config"], to_dict(cfg)):
-            return read_json(metrics_path)
+    else:
+        done = finished_metrics(
+            ckpt_path, final_path, metrics_path, to_dict(cfg), _RUNTIME_KEYS, cfg.iterations
+        )
+        if done is not None:
+            return done
 
     torch.manual_seed(cfg.seed)
     geo_dim = template.cfg.geo_feat_dim
@@ -340,34 +334,23 @@ def distill_features(
     decay = cfg.lr_final_factor ** (1.0 / max(cfg.iterations, 1))
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: decay**step)
     generator = torch.Generator().manual_seed(cfg.seed)
-    step, log, train_seconds = 0, [], 0.0
-    if ckpt_path.exists():
-        state = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        if not _same_settings(state["config"], to_dict(cfg)):
-            raise SineError(
-                f"{ckpt_path} was made with other settings; re-run with --force to start over"
-            )
-        field.load_state_dict(state["field"])
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        generator.set_state(state["generator"])
-        torch.set_rng_state(state["torch_rng"])
-        step, log, train_seconds = state["step"], state["log"], state["train_seconds"]
+    modules = {"field": field}
+    step, log, train_seconds = restore_state(
+        ckpt_path, to_dict(cfg), _RUNTIME_KEYS, modules, optimizer, scheduler, generator
+    )
 
     def checkpoint():
-        state = {
-            "config": to_dict(cfg),
-            "field": field.state_dict(),
-            "optimizer": optimizer.state_dict(),
-            "scheduler": scheduler.state_dict(),
-            "generator": generator.get_state(),
-            "torch_rng": torch.get_rng_state(),
-            "step": step,
-            "log": log,
-            "train_seconds": train_seconds,
-        }
-        with atomic_path(ckpt_path) as tmp:
-            torch.save(state, tmp)
+        save_state(
+            ckpt_path,
+            to_dict(cfg),
+            modules,
+            optimizer,
+            scheduler,
+            generator,
+            step,
+            log,
+            train_seconds,
+        )
 
     n_pool = len(pool.weights)
     last = min(cfg.iterations, stop_at) if stop_at is not None else cfg.iterations

@@ -26,11 +26,12 @@ import torch
 from tqdm import tqdm
 
 from recon.rundir import RunDir
-from render.configs import option, to_dict
+from recon.training import finished_metrics, restore_state, save_state
+from render.configs import option, to_dict, update_from_dict
 from render.device import check_finite, pick_device
 from render.errors import SineError
 from render.hashgrid import HashGridConfig
-from render.io import atomic_path, read_image, read_json, read_mask, write_image, write_json
+from render.io import atomic_path, read_image, read_mask, write_image, write_json
 from render.renderer import render_image, render_rays
 from render.sampler import BandSampler, ProxyRaycaster, RayHits, UniformSampler
 from render.template_field import Background, TemplateField, TemplateFieldConfig
@@ -193,8 +194,8 @@ def field_config_from_dict(d: dict) -> TemplateFieldConfig:
     return TemplateFieldConfig(grid=grid, **{k: v for k, v in d.items() if k in names})
 
 
-def load_template(run_dir, device: torch.device | None = None) -> tuple[TemplateField, Background]:
-    """The fitted field and background of a run (RUN/template/field.pt)."""
+def load_fitted(run_dir, device: torch.device | None = None):
+    """(field, background, FitConfig it was fitted with) of a run (RUN/template/field.pt)."""
     run = RunDir(run_dir)
     path = run.template / "field.pt"
     if not path.is_file():
@@ -203,8 +204,15 @@ def load_template(run_dir, device: torch.device | None = None) -> tuple[Template
     field = TemplateField(field_config_from_dict(data["field_config"]))
     field.load_state_dict(data["field"])
     bg = Background(data["background_color"], learnable=False)
+    fit_cfg = update_from_dict(FitConfig, data.get("fit_config") or {})
     device = device or torch.device("cpu")
-    return field.to(device).eval(), bg.to(device)
+    return field.to(device).eval(), bg.to(device), fit_cfg
+
+
+def load_template(run_dir, device: torch.device | None = None) -> tuple[TemplateField, Background]:
+    """The fitted field and background of a run (RUN/template/field.pt)."""
+    field, bg, _ = load_fitted(run_dir, device)
+    return field, bg
 
 
 # ---- metrics ------------------------------------------------------------------------------
@@ -265,16 +273,6 @@ _RUNTIME_KEYS = (
 )
 
 
-def _same_settings(a: dict, b: dict) -> bool:
-    strip = lambda d: {k: v for k, v in d.items() if k not in _RUNTIME_KEYS}  # noqa: E731
-    return strip(a) == strip(b)
-
-
-def _save_checkpoint(run: RunDir, state: dict) -> None:
-    with atomic_path(_checkpoint_path(run)) as tmp:
-        torch.save(state, tmp)
-
-
 def fit_template(
     run_dir,
     cfg: FitConfig | None = None,
@@ -326,46 +324,39 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     decay = cfg.lr_final_factor ** (1.0 / max(cfg.iterations, 1))
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: decay**step)
     generator = torch.Generator().manual_seed(cfg.seed)
-    step, log, train_seconds = 0, [], 0.0
 
     ckpt_path = _checkpoint_path(run)
     metrics_path = run.template / "metrics.json"
+    modules = {"field": field, "background": background}
     if force:
         for p in (ckpt_path, metrics_path, run.template / "field.pt"):
             p.unlink(missing_ok=True)
-    elif metrics_path.is_file() and (run.template / "field.pt").is_file() and ckpt_path.is_file():
-        done = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        if done["step"] >= cfg.iterations and _same_settings(done["config"], to_dict(cfg)):
-            return read_json(metrics_path)  # already fitted with these settings
-    if ckpt_path.exists():
-        state = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        if _same_settings(state["config"], to_dict(cfg)) is False:
-            raise SineError(
-                f"{ckpt_path} was made with other settings; re-run with --force to start over"
-            )
-        field.load_state_dict(state["field"])
-        background.load_state_dict(state["background"])
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        generator.set_state(state["generator"])
-        torch.set_rng_state(state["torch_rng"])
-        step, log, train_seconds = state["step"], state["log"], state["train_seconds"]
+    else:
+        done = finished_metrics(
+            ckpt_path,
+            run.template / "field.pt",
+            metrics_path,
+            to_dict(cfg),
+            _RUNTIME_KEYS,
+            cfg.iterations,
+        )
+        if done is not None:
+            return done  # already fitted with these settings
+    step, log, train_seconds = restore_state(
+        ckpt_path, to_dict(cfg), _RUNTIME_KEYS, modules, optimizer, scheduler, generator
+    )
 
     def checkpoint():
-        _save_checkpoint(
-            run,
-            {
-                "config": to_dict(cfg),
-                "field": field.state_dict(),
-                "background": background.state_dict(),
-                "optimizer": optimizer.state_dict(),
-                "scheduler": scheduler.state_dict(),
-                "generator": generator.get_state(),
-                "torch_rng": torch.get_rng_state(),
-                "step": step,
-                "log": log,
-                "train_seconds": train_seconds,
-            },
+        save_state(
+            ckpt_path,
+            to_dict(cfg),
+            modules,
+            optimizer,
+            scheduler,
+            generator,
+            step,
+            log,
+            train_seconds,
         )
 
     n_pool = len(pool.origins)
