@@ -36,17 +36,13 @@ class DemoConfig:
     force: bool = option(False, "redo every stage instead of resuming finished ones")
 
 
-def iou(a: np.ndarray, b: np.ndarray) -> float:
-    union = np.logical_or(a, b).sum()
-    return float(np.logical_and(a, b).sum() / union) if union else 1.0
-
-
 def run_demo(cfg: DemoConfig) -> dict:
     from edit.masks_cli import MasksConfig, semantic_masks
     from recon.features import FeaturesConfig, distill_features
     from recon.fit import FitConfig, fit_template
     from recon.ingest import IngestConfig
     from recon.pipeline import ReconConfig, run_recon
+    from recon.report import mask_iou
     from recon.rundir import RunDir
     from recon.synth import SynthConfig, synthesize
 
@@ -93,7 +89,7 @@ def run_demo(cfg: DemoConfig) -> dict:
     masks_dir = run.edit("demo") / "semantic_masks"
     semantic_masks(run.root, cfg.edit_view, region, masks_dir, MasksConfig(device=cfg.device))
     ious = {
-        c.name: iou(
+        c.name: mask_iou(
             read_mask(masks_dir / "masks" / (Path(c.name).stem + ".png")), labels[c.name] == part_id
         )
         for c in cameras

@@ -54,6 +54,12 @@ def contact_sheet(images, masks, silhouettes, columns: int = 6, width: int = 200
     return np.vstack(rows)
 
 
+def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two boolean masks [H, W] (1.0 when both are empty)."""
+    union = np.logical_or(a, b).sum()
+    return float(np.logical_and(a, b).sum() / union) if union else 1.0
+
+
 def write_report(run: RunDir, state: dict, columns: int = 6) -> dict:
     """Computes silhouette IoU, writes the contact sheet and recon_report.json; returns IoU stats."""
     cams = run.load_cameras().frames
@@ -61,8 +67,7 @@ def write_report(run: RunDir, state: dict, columns: int = 6) -> dict:
     sils = proxy_silhouettes(run, cams)
     ious = []
     for mask, sil in tqdm(list(zip(masks, sils, strict=True)), desc="report", unit="view"):
-        union = np.logical_or(mask, sil).sum()
-        ious.append(float(np.logical_and(mask, sil).sum() / union) if union else 1.0)
+        ious.append(mask_iou(mask, sil))
     images = [read_image(run.image_path(c.name)) for c in cams]
     sheet_path = run.root / "recon_contact_sheet.png"
     write_image(sheet_path, np.clip(contact_sheet(images, masks, sils, columns), 0, 1))
