@@ -175,8 +175,7 @@ def render_feature_map(
 ) -> dict[str, np.ndarray]:
     """One camera -> {"features" [H, W, C] (decoded, or [H, W, D] coefficients without decode),
     "opacity" [H, W]}: features composited from the top-k samples per ray (default: as in
-    training) and
-    divided by their weight (0 where the opacity is below `min_opacity`)."""
+    training) and divided by their weight (0 where the opacity is below `min_opacity`)."""
     device = device or features.mean.device
     top_k = top_k or features.cfg.top_k
     o, d = (torch.from_numpy(a).to(device) for a in camera.rays())  # [R, 3]
