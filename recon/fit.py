@@ -301,6 +301,22 @@ def fit_template(
 
 def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_at) -> dict:
     t_start = time.perf_counter()
+    ckpt_path = _checkpoint_path(run)
+    metrics_path = run.template / "metrics.json"
+    if force:
+        for p in (ckpt_path, metrics_path, run.template / "field.pt"):
+            p.unlink(missing_ok=True)
+    else:  # before any data is loaded: a finished fit costs nothing
+        done = finished_metrics(
+            ckpt_path,
+            run.template / "field.pt",
+            metrics_path,
+            to_dict(cfg),
+            _RUNTIME_KEYS,
+            cfg.iterations,
+        )
+        if done is not None:
+            return done  # already fitted with these settings
 
     train_views = load_views(run, "train")
     test_views = load_views(run, "test") or load_views(run, "val")
@@ -325,23 +341,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: decay**step)
     generator = torch.Generator().manual_seed(cfg.seed)
 
-    ckpt_path = _checkpoint_path(run)
-    metrics_path = run.template / "metrics.json"
     modules = {"field": field, "background": background}
-    if force:
-        for p in (ckpt_path, metrics_path, run.template / "field.pt"):
-            p.unlink(missing_ok=True)
-    else:
-        done = finished_metrics(
-            ckpt_path,
-            run.template / "field.pt",
-            metrics_path,
-            to_dict(cfg),
-            _RUNTIME_KEYS,
-            cfg.iterations,
-        )
-        if done is not None:
-            return done  # already fitted with these settings
     step, log, train_seconds = restore_state(
         ckpt_path, to_dict(cfg), _RUNTIME_KEYS, modules, optimizer, scheduler, generator
     )
