@@ -288,6 +288,18 @@ def distill_features(
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     t_start = time.perf_counter()
+    ckpt_path = run.features / "checkpoint.pt"
+    final_path = run.features / "field.pt"
+    metrics_path = run.features / "metrics.json"
+    if force:
+        for p in (ckpt_path, final_path, metrics_path):
+            p.unlink(missing_ok=True)
+    else:  # before the template, the views and DINO are loaded: a finished run costs nothing
+        done = finished_metrics(
+            ckpt_path, final_path, metrics_path, to_dict(cfg), _RUNTIME_KEYS, cfg.iterations
+        )
+        if done is not None:
+            return done
     template, sampler = load_template_and_sampler(run, device)
 
     train_views = load_views(run, "train")
@@ -301,19 +313,6 @@ def distill_features(
     feats = dino["features"]  # [N, C, h, w]
     image_size = dino["image_size"]
     n_train = len(train_views)
-
-    ckpt_path = run.features / "checkpoint.pt"
-    final_path = run.features / "field.pt"
-    metrics_path = run.features / "metrics.json"
-    if force:
-        for p in (ckpt_path, final_path, metrics_path):
-            p.unlink(missing_ok=True)
-    else:
-        done = finished_metrics(
-            ckpt_path, final_path, metrics_path, to_dict(cfg), _RUNTIME_KEYS, cfg.iterations
-        )
-        if done is not None:
-            return done
 
     torch.manual_seed(cfg.seed)
     geo_dim = template.cfg.geo_feat_dim
