@@ -2,8 +2,9 @@
 
 The feature field (from `sine features`) is rendered at the editing view; the features inside the
 user's painted region are K-means clustered (edit/semantic_masks.py, the paper's K = 15, 1000
-samples, threshold 0.5); then every view's rendered feature map gives its editable pixels,
-restricted to the object (template opacity). Writes DIR/masks/<view>.png (0/255),
+samples), and so are those of the rest of the object; then every view's rendered feature map gives
+its editable pixels (nearer to the painted part than to the rest; or the paper's threshold 0.5 with
+--rule threshold), restricted to the object (template opacity). Writes DIR/masks/<view>.png (0/255),
 DIR/overlay_contact_sheet.png, DIR/semantic_centres.npy ([K, C]) and DIR/metrics.json.
 """
 
@@ -22,8 +23,11 @@ from render.errors import SineError
 DESCRIPTION = """\
 Semantic masks (SINE Sec. 3): renders the distilled DINO feature field of RUN at the editing view
 --view (index into cameras.json or image name), samples features inside the painted region
-(--region: a PNG of the run's working-image size, white = painted), fits K-means centres and marks
-a pixel of any view editable when its normalised feature is close to a centre. Writes
+(--region: a PNG of the run's working-image size, white = painted), fits K-means centres to them
+and to the rest of the object, and marks a pixel of any view editable when its normalised feature
+is nearer to the painted part's centres than to the rest's (--rule contrast, default) or within
+--threshold of them (--rule threshold, the paper's rule). Paint the whole part as the editing view
+shows it: with the contrast rule, what is left unpainted counts as the rest of the object. Writes
 DIR/masks/<view>.png, DIR/overlay_contact_sheet.png, DIR/semantic_centres.npy and DIR/metrics.json.
 """
 
@@ -85,6 +89,21 @@ def load_region(path, camera) -> np.ndarray:
     return region
 
 
+def view_image(run, camera) -> np.ndarray | None:
+    """The run's working image of a camera [H, W, 3] in [0, 1] (None when it is missing)."""
+    from render.io import read_image
+
+    path = run.image_path(camera.name)
+    if not path.is_file():
+        return None
+    image = read_image(path)
+    if image.shape[:2] != (camera.height, camera.width):
+        import cv2
+
+        image = cv2.resize(image, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
+    return image
+
+
 def overlay(image: np.ndarray, mask: np.ndarray, tint: float, width: int, edit_view: bool):
     """Thumbnail [h, width, 3] of `image` with `mask` tinted cyan (a magenta frame marks the
     editing view)."""
@@ -107,6 +126,35 @@ def contact_sheet(tiles: list[np.ndarray], columns: int) -> np.ndarray:
     return np.vstack([np.hstack(tiles[i : i + columns]) for i in range(0, len(tiles), columns)])
 
 
+class FeatureMapRenderer:
+    """Renders a run's feature field for a camera: (features [C, H, W], object mask [H, W])."""
+
+    def __init__(self, run_dir, cfg: MasksConfig | None = None):
+        from recon.features import load_features
+        from render.device import pick_device
+
+        self.cfg = cfg or MasksConfig()
+        self.device = pick_device(self.cfg.device)
+        self.template, self.field, self.sampler = load_features(run_dir, self.device)
+
+    def __call__(self, camera):
+        import torch
+
+        from render.feature_field import render_feature_map
+
+        out = render_feature_map(
+            camera,
+            self.template,
+            self.field,
+            self.sampler,
+            chunk=self.cfg.chunk,
+            device=self.device,
+            decode=self.cfg.space == "dino",
+        )
+        feats = torch.from_numpy(out["features"]).permute(2, 0, 1)  # [C, H, W]
+        return feats, out["opacity"] >= self.cfg.min_opacity
+
+
 def semantic_masks(
     run_dir,
     view: str | int,
@@ -121,11 +169,8 @@ def semantic_masks(
     from tqdm import tqdm
 
     from edit.semantic_masks import SemanticMaskConfig, SemanticMasks
-    from recon.features import load_features
     from recon.rundir import RunDir
-    from render.device import pick_device
-    from render.feature_field import render_feature_map
-    from render.io import read_image, write_image, write_json, write_mask
+    from render.io import write_image, write_json, write_mask
 
     cfg = cfg or MasksConfig()
     mask_cfg = mask_cfg or SemanticMaskConfig()
@@ -139,18 +184,9 @@ def semantic_masks(
         region = np.asarray(region, bool)
         if region.shape != (edit_cam.height, edit_cam.width) or not region.any():
             raise SineError(f"region must be a non-empty {edit_cam.width}x{edit_cam.height} mask")
-    device = pick_device(cfg.device)
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
-    template, field, sampler = load_features(run.root, device)
-
-    def render(cam):
-        decode = cfg.space == "dino"
-        out = render_feature_map(
-            cam, template, field, sampler, chunk=cfg.chunk, device=device, decode=decode
-        )
-        feats = torch.from_numpy(out["features"]).permute(2, 0, 1)  # [C, H, W]
-        return feats, out["opacity"] >= cfg.min_opacity
+    render = FeatureMapRenderer(run.root, cfg)
 
     t0 = time.perf_counter()
     feats, on_object = render(edit_cam)
@@ -160,7 +196,7 @@ def semantic_masks(
             f"the painted region does not touch the object in view {edit_cam.name}: "
             "paint over the object's pixels"
         )
-    masks = SemanticMasks(feats, painted, mask_cfg)
+    masks = SemanticMasks(feats, painted, mask_cfg, object_mask=on_object)
     seconds_fit = time.perf_counter() - t0
 
     out_dir = Path(out_dir)
@@ -169,7 +205,8 @@ def semantic_masks(
         t0 = time.perf_counter()
         if i != index:
             feats, on_object = render(cam)
-        editable = masks.mask(feats).cpu().numpy() & on_object
+        image = view_image(run, cam)
+        editable = masks.mask(feats, image, on_object).cpu().numpy() & on_object
         seconds_render += time.perf_counter() - t0
         stem = Path(cam.name).stem
         write_mask(out_dir / "masks" / f"{stem}.png", editable)
@@ -178,15 +215,8 @@ def semantic_masks(
             "object_pixels": int(on_object.sum()),
             "editable_fraction_of_object": float(editable.sum() / max(on_object.sum(), 1)),
         }
-        image_path = run.image_path(cam.name)
-        if image_path.is_file():
-            image = read_image(image_path)
-        else:
+        if image is None:
             image = np.ones((cam.height, cam.width, 3), np.float32)
-        if image.shape[:2] != editable.shape:
-            import cv2
-
-            image = cv2.resize(image, editable.shape[::-1], interpolation=cv2.INTER_AREA)
         tiles.append(overlay(image, editable, cfg.tint, cfg.thumbnail_width, i == index))
     write_image(out_dir / "overlay_contact_sheet.png", contact_sheet(tiles, cfg.columns))
     np.save(out_dir / "semantic_centres.npy", masks.centres.cpu().numpy().astype(np.float32))
@@ -196,6 +226,7 @@ def semantic_masks(
         "edit_view_index": index,
         "region_pixels": int(region.sum()),
         "region_pixels_on_object": int(painted.sum()),
+        "rule": masks.rule,
         "views": len(cameras),
         "seconds_fit": seconds_fit,
         "seconds_render_and_mask": seconds_render,

@@ -1,9 +1,22 @@
 """Semantic masks (SINE Sec. 3): which pixels of any view belong to the edited part.
 
 From the DINO feature map of the editing view and the user's painted region: sample features
-inside the region, K-means them, and in any view mark a pixel editable when its L2-normalised
-feature lies within `threshold` of the nearest (normalised) centre. Everything else is
-background, where L_reg keeps the template.
+inside the region and K-means them ("part" centres). Two rules mark a pixel of any view editable:
+
+- `threshold` (the paper's): its L2-normalised feature lies within `threshold` of the nearest
+  part centre;
+- `contrast` (default): the same K-means on the rest of the object in the editing view gives
+  "other" centres, and a pixel is editable when its feature is nearer to a part centre than to
+  any other centre. No absolute distance to tune: a face of the part that looks a little different
+  from the painted one still goes with the part, while a neighbouring part that looks a little
+  like it goes with itself. Without an object mask (or nothing outside the region) it falls back
+  to `threshold`.
+
+With the view's image at hand, the decision is refined: DINO features are blurred over a patch
+(~1/16 of the object), so the soft score (distance margin) is guided-filtered with the image,
+which moves the mask's edges onto the image's colour edges.
+
+Everything else is background, where L_reg keeps the template.
 """
 
 from __future__ import annotations
@@ -26,10 +39,33 @@ class SemanticMaskConfig:
         1000, "features sampled (seeded) inside the painted region of the editing view"
     )
     num_clusters: int = option(15, "K-means centres K fitted to the region's features")
+    rule: str = option(
+        "contrast",
+        "which pixels are editable: 'contrast' = nearer to the painted part's centres than to the "
+        "centres of the rest of the object in the editing view; 'threshold' = the paper's rule, "
+        "distance to the nearest part centre below --threshold",
+        choices=["contrast", "threshold"],
+    )
     threshold: float = option(
         0.5,
-        "a pixel is editable when the distance from its L2-normalised feature to the nearest "
-        "centre is below this (unit vectors: 0.5 <=> cosine > 0.875)",
+        "threshold rule: a pixel is editable when the distance from its L2-normalised feature to "
+        "the nearest centre is below this (unit vectors: 0.5 <=> cosine > 0.875)",
+    )
+    rest_margin: int = option(
+        4,
+        "contrast rule: object pixels within this many pixels of the painted region are not "
+        "used as 'rest of the object' (a stroke rarely reaches the part's edge exactly)",
+    )
+    refine: bool = option(
+        True, "snap the masks' edges to the image's colour edges (guided filter on the score)"
+    )
+    refine_radius: float = option(
+        0.06,
+        "guided-filter radius as a fraction of the object's size in the view (the DINO crop "
+        "spans the object with 16 patches: 0.06 is about one patch)",
+    )
+    refine_eps: float = option(
+        0.01, "guided-filter regularisation (image in [0, 1]): larger follows the image less"
     )
     kmeans_init: int = option(3, "K-means restarts (scikit-learn n_init)")
     seed: int = option(0, "seed of the feature sampling and of K-means")
@@ -84,16 +120,82 @@ def nearest_centre_distance(features, centres: torch.Tensor, chunk: int = 65536)
 
 
 class SemanticMasks:
-    """Fitted once on the editing view; `mask(features)` gives any view's editable pixels."""
+    """Fitted once on the editing view; `mask(features)` gives any view's editable pixels.
 
-    def __init__(self, features, region, config: SemanticMaskConfig | None = None):
-        self.config = config or SemanticMaskConfig()
-        self.centres = fit_region_centres(features, region, self.config)  # [K, C]
+    features [C, H, W] of the editing view, region [H, W] the painted pixels, object_mask [H, W]
+    the object's pixels in that view (needed by the contrast rule: the rest of the object is
+    object_mask minus the region grown by `rest_margin`).
+    """
+
+    def __init__(
+        self,
+        features,
+        region,
+        config: SemanticMaskConfig | None = None,
+        object_mask=None,
+    ):
+        self.config = cfg = config or SemanticMaskConfig()
+        if cfg.rule not in ("contrast", "threshold"):
+            raise SineError(f"unknown mask rule {cfg.rule!r}: contrast or threshold")
+        self.centres = fit_region_centres(features, region, cfg)  # [K, C]
+        self.other_centres = None  # [K', C] (contrast rule)
+        if cfg.rule == "contrast" and object_mask is not None:
+            rest = rest_of_object(region, object_mask, cfg.rest_margin)
+            if rest.sum() >= cfg.num_clusters:
+                self.other_centres = fit_region_centres(features, rest, cfg)
+
+    @property
+    def rule(self) -> str:
+        """The rule in use ('contrast' falls back to 'threshold' without a rest of the object)."""
+        return "contrast" if self.other_centres is not None else "threshold"
 
     def distance(self, features) -> torch.Tensor:
-        """[H, W] distance to the nearest centre."""
+        """[H, W] distance to the nearest part centre."""
         return nearest_centre_distance(features, self.centres)
 
-    def mask(self, features) -> torch.Tensor:
-        """Bool [H, W]: True where editable (distance < threshold)."""
-        return self.distance(features) < self.config.threshold
+    def score(self, features) -> torch.Tensor:
+        """[H, W] soft decision, > 0 where editable: the distance margin to the rest's centres
+        (contrast rule) or to the threshold."""
+        d_part = self.distance(features)
+        if self.other_centres is None:
+            return self.config.threshold - d_part
+        return nearest_centre_distance(features, self.other_centres) - d_part
+
+    def mask(self, features, image=None, object_mask=None) -> torch.Tensor:
+        """Bool [H, W]: True where editable. With the view's image [H, W, 3] (in [0, 1]) and its
+        object mask [H, W] (which sets the filter radius), the edges follow the image's."""
+        score = self.score(features)
+        if image is not None and object_mask is not None and self.config.refine:
+            score = guided_refine(
+                score, image, object_mask, self.config.refine_radius, self.config.refine_eps
+            )
+        return score > 0
+
+
+def guided_refine(score, image, object_mask, radius: float, eps: float) -> torch.Tensor:
+    """score [H, W] guided-filtered by image [H, W, 3] (radius: a fraction of the object's longer
+    bounding-box side in object_mask [H, W]); an empty object leaves the score as it is."""
+    import cv2
+
+    ys, xs = np.nonzero(np.asarray(object_mask))
+    score = torch.as_tensor(score)
+    if len(xs) == 0:
+        return score
+    size = max(xs.max() - xs.min(), ys.max() - ys.min()) + 1
+    r = max(1, round(radius * size))
+    guide = np.ascontiguousarray(np.asarray(image, np.float32)[..., :3])
+    src = score.detach().cpu().numpy().astype(np.float32)
+    out = cv2.ximgproc.guidedFilter(guide, src, r, eps)
+    return torch.from_numpy(out).to(score.device)
+
+
+def rest_of_object(region, object_mask, margin: int) -> np.ndarray:
+    """Object pixels [H, W] farther than `margin` pixels from the painted region."""
+    import cv2
+
+    region = np.asarray(region, bool)
+    grown = region
+    if margin > 0:
+        kernel = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
+        grown = cv2.dilate(region.astype(np.uint8), kernel) > 0
+    return np.asarray(object_mask, bool) & ~grown

@@ -55,6 +55,14 @@ class FeaturesConfig:
     lr_final_factor: float = option(0.1, "learning rates decay exponentially to this factor")
     dim: int = option(64, "PCA channels distilled (0: every DINO channel)")
     short_side: int = option(224, "DINO input short side (patch 14: 224 -> 16 patches)")
+    crop: str = option(
+        "object",
+        "what DINO sees of each view: 'object' = a square crop around the view's mask (the patch "
+        "grid covers the object, not the background: finer part boundaries), 'image' = the whole "
+        "image (also the fallback when a view has no mask)",
+        choices=["object", "image"],
+    )
+    crop_margin: float = option(0.1, "object crop: margin around the mask, a fraction of its side")
     facet: str = option(
         "token", "DINO features: final-norm tokens or last keys", choices=["token", "key"]
     )
@@ -118,48 +126,95 @@ def field_config_from_dict(d: dict) -> FeatureFieldConfig:
 
 
 # ---- DINO targets -------------------------------------------------------------------------
+def object_box(mask: np.ndarray, margin: float) -> tuple[float, float, float, float]:
+    """Square box (x0, y0, side, side) in pixels around the mask's bounding box, grown by
+    `margin` x its longer side on every side (it may reach outside the image)."""
+    ys, xs = np.nonzero(mask)
+    if len(xs) == 0:
+        h, w = mask.shape
+        return 0.0, 0.0, float(w), float(h)
+    cx, cy = (xs.min() + xs.max() + 1) / 2.0, (ys.min() + ys.max() + 1) / 2.0
+    side = max(xs.max() + 1 - xs.min(), ys.max() + 1 - ys.min()) * (1.0 + 2.0 * margin)
+    return cx - side / 2.0, cy - side / 2.0, float(side), float(side)
+
+
+def crop_to_box(image: np.ndarray, box, size: tuple[int, int]) -> np.ndarray:
+    """The box (x0, y0, bw, bh) of an HW[C] image resampled to size (h, w); outside the image
+    the border is replicated. Pixel centres map to pixel centres (as `bilinear_lookup`)."""
+    import cv2
+
+    x0, y0, bw, bh = box
+    h, w = size
+    shrink = min(w / bw, h / bh)
+    if shrink < 1.0:  # shrink with area averaging first (warpAffine would alias)
+        dsize = (max(1, round(image.shape[1] * shrink)), max(1, round(image.shape[0] * shrink)))
+        small = cv2.resize(image, dsize, interpolation=cv2.INTER_AREA)
+        fx, fy = small.shape[1] / image.shape[1], small.shape[0] / image.shape[0]
+        image, x0, y0, bw, bh = small, x0 * fx, y0 * fy, bw * fx, bh * fy
+    sx, sy = w / bw, h / bh
+    matrix = np.array(
+        [[sx, 0.0, -sx * x0 + 0.5 * sx - 0.5], [0.0, sy, -sy * y0 + 0.5 * sy - 0.5]], np.float64
+    )
+    return cv2.warpAffine(
+        image, matrix, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
+
+
 def dino_features(run: RunDir, views, cfg: FeaturesConfig, device, progress: bool = True) -> dict:
     """Patch features of every view, cached in RUN/features/dino_cache.pt.
 
-    Returns {"names": [...], "features": [N, C, h, w] float32 (CPU), "image_size": (H, W)}.
+    Returns {"names": [...], "features": [N, C, h, w] float32 (CPU), "boxes": [N, 4] float32
+    (x0, y0, width, height: the image region, in pixels, that each feature map covers),
+    "image_size": (H, W)}.
     """
     names = [cam.name for cam, _, _ in views]
     sizes = {img.shape[:2] for _, img, _ in views}
     if len(sizes) != 1:
         raise SineError(f"the run's working images have several sizes {sorted(sizes)}")
     image_size = tuple(next(iter(sizes)))
+    crop = cfg.crop == "object" and all(m is not None and m.any() for _, _, m in views)
+    if crop:
+        boxes = torch.tensor([object_box(m, cfg.crop_margin) for _, _, m in views])
+    else:
+        boxes = torch.tensor([[0.0, 0.0, image_size[1], image_size[0]]]).repeat(len(views), 1)
     key = {
         "names": names,
         "image_size": list(image_size),
         "short_side": cfg.short_side,
         "facet": cfg.facet,
         "checkpoint": str(cfg.dino_checkpoint) if cfg.dino_checkpoint else None,
+        "boxes": boxes.round(decimals=3).tolist(),
     }
+    result = {"names": names, "boxes": boxes.float(), "image_size": image_size}
     path = run.features / "dino_cache.pt"
     if path.is_file():
         try:
             cached = torch.load(path, map_location="cpu", weights_only=False)
             if cached.get("key") == key:
-                return {
-                    "names": names,
-                    "features": cached["features"].float(),
-                    "image_size": image_size,
-                }
+                return {**result, "features": cached["features"].float()}
         except Exception:
             pass  # unreadable cache: recompute
     from edit.dino import load_dino
 
     dino = load_dino(device, cfg.dino_checkpoint, short_side=cfg.short_side)
+    images = [img for _, img, _ in views]
+    size = None
+    if crop:
+        size = dino.input_size(cfg.short_side, cfg.short_side)
+        images = [
+            crop_to_box(img, box.tolist(), size) for img, box in zip(images, boxes, strict=True)
+        ]
     feats = dino.extract(
-        [img for _, img, _ in views], batch_size=cfg.batch_views, facet=cfg.facet, progress=progress
+        images, batch_size=cfg.batch_views, size=size, facet=cfg.facet, progress=progress
     )  # [N, C, h, w]
     with atomic_path(path) as tmp:
         torch.save({"key": key, "features": feats.half()}, tmp)
-    return {"names": names, "features": feats.float(), "image_size": image_size}
+    return {**result, "features": feats.float()}
 
 
 def foreground_pca(features: torch.Tensor, masks: list, dim: int, seed: int = 0):
-    """PCA (mean [C], components [D, C]) of patch features [N, C, h, w] on foreground patches."""
+    """PCA (mean [C], components [D, C]) of patch features [N, C, h, w] on foreground patches
+    (masks: per view a bool array over the region the feature map covers, or None)."""
     n, c, h, w = features.shape
     flat = features.permute(0, 2, 3, 1).reshape(n, h * w, c)
     sel = []
@@ -180,14 +235,15 @@ def foreground_pca(features: torch.Tensor, masks: list, dim: int, seed: int = 0)
 
 
 def bilinear_lookup(
-    maps: torch.Tensor, view: torch.Tensor, xy: torch.Tensor, image_size
+    maps: torch.Tensor, view: torch.Tensor, xy: torch.Tensor, boxes: torch.Tensor
 ) -> torch.Tensor:
     """Bilinear samples of per-view maps [N, h, w, D] at pixel coordinates xy [B, 2] of views
-    view [B] (images of `image_size` (H, W)); like grid_sample(align_corners=False, border)."""
+    view [B]; map n covers the image box boxes[n] = (x0, y0, width, height) [N, 4]. Like
+    grid_sample(align_corners=False, padding_mode="border") over that box."""
     _, h, w, _ = maps.shape
-    height, width = image_size
-    u = (xy[:, 0] * (w / width) - 0.5).clamp(0, w - 1)  # [B]
-    v = (xy[:, 1] * (h / height) - 0.5).clamp(0, h - 1)
+    box = boxes.to(xy)[view]  # [B, 4]
+    u = ((xy[:, 0] - box[:, 0]) * (w / box[:, 2]) - 0.5).clamp(0, w - 1)  # [B]
+    v = ((xy[:, 1] - box[:, 1]) * (h / box[:, 3]) - 0.5).clamp(0, h - 1)
     x0 = u.floor().long().clamp(max=max(w - 2, 0))
     y0 = v.floor().long().clamp(max=max(h - 2, 0))
     x1, y1 = (x0 + 1).clamp(max=w - 1), (y0 + 1).clamp(max=h - 1)
@@ -310,23 +366,24 @@ def distill_features(
     t0 = time.perf_counter()
     dino = dino_features(run, all_views, cfg, device, progress)
     seconds_dino = time.perf_counter() - t0
-    feats = dino["features"]  # [N, C, h, w]
-    image_size = dino["image_size"]
+    feats, boxes = dino["features"], dino["boxes"].to(device)  # [N, C, h, w], [N, 4]
     n_train = len(train_views)
 
     torch.manual_seed(cfg.seed)
     geo_dim = template.cfg.geo_feat_dim
     field = FeatureField(field_config(cfg, feats.shape[1], geo_dim)).to(device)
-    mean, comps = foreground_pca(
-        feats[:n_train], [m for _, _, m in train_views], field.cfg.out_dim, cfg.seed
-    )
+    grid_masks = [
+        None if m is None else crop_to_box(m.astype(np.float32), box.tolist(), m.shape) > 0.5
+        for (_, _, m), box in zip(train_views, dino["boxes"][:n_train], strict=True)
+    ]  # the masks over the region each feature map covers
+    mean, comps = foreground_pca(feats[:n_train], grid_masks, field.cfg.out_dim, cfg.seed)
     field.set_basis(mean, comps)
     t0 = time.perf_counter()
     pool = build_pool(train_views, template, sampler, cfg, device, progress)
     seconds_pool = time.perf_counter() - t0
     with torch.no_grad():
         maps = field.project(feats[:n_train].permute(0, 2, 3, 1).to(device))  # [N, h, w, D]
-        sample = bilinear_lookup(maps, pool.view[:20000], pool.xy[:20000], image_size)
+        sample = bilinear_lookup(maps, pool.view[:20000], pool.xy[:20000], boxes)
         target_var = float(sample.var(0).sum().clamp_min(1e-8))
 
     optimizer = torch.optim.Adam(field.param_groups(cfg.lr_grid, cfg.lr_mlp), betas=(0.9, 0.99))
@@ -362,7 +419,7 @@ def distill_features(
         idx = torch.randint(n_pool, (cfg.batch_rays,), generator=generator).to(device)
         pred = _render(field, pool, idx)  # [B, D]
         with torch.no_grad():
-            target = bilinear_lookup(maps, pool.view[idx], pool.xy[idx], image_size)  # [B, D]
+            target = bilinear_lookup(maps, pool.view[idx], pool.xy[idx], boxes)  # [B, D]
         rel = ((pred - target) ** 2).sum(-1).mean() / target_var
         loss = rel
         if cfg.cosine_weight > 0:
@@ -405,9 +462,16 @@ def distill_features(
     field.eval()
     t_eval = time.perf_counter()
     eval_views = test_views or train_views[:1]
-    eval_feats = feats[n_train:] if test_views else feats[:1]
+    eval_at = slice(n_train, None) if test_views else slice(0, 1)
     metrics = evaluate(
-        field, template, sampler, eval_views, eval_feats, device, cfg, run.features / "previews"
+        field,
+        template,
+        sampler,
+        eval_views,
+        (feats[eval_at], boxes[eval_at]),
+        device,
+        cfg,
+        run.features / "previews",
     )
     metrics.update(
         {
@@ -432,8 +496,9 @@ def distill_features(
 
 
 @torch.no_grad()
-def evaluate(field, template, sampler, views, dino_feats, device, cfg, preview_dir) -> dict:
-    """Rendered vs DINO features on the views' foreground; previews.
+def evaluate(field, template, sampler, views, dino, device, cfg, preview_dir) -> dict:
+    """Rendered vs DINO features (dino = (features [N, C, h, w], boxes [N, 4])) on the views'
+    foreground; previews.
 
     heldout_cosine: cosine of the decoded features (dominated by the shared mean);
     heldout_centred_cosine / heldout_rel_error: in PCA coefficients (mean removed), the same
@@ -443,10 +508,11 @@ def evaluate(field, template, sampler, views, dino_feats, device, cfg, preview_d
     lo = hi = None
     for i, (cam, image, mask) in enumerate(views):
         out = render_feature_map(cam, template, field, sampler, None, cfg.eval_chunk, device)
-        target = F.interpolate(
-            dino_feats[i : i + 1], size=image.shape[:2], mode="bilinear", align_corners=False
-        )
-        target = target[0].permute(1, 2, 0).to(device)  # [H, W, C]
+        maps = dino[0][i : i + 1].permute(0, 2, 3, 1).to(device)  # [1, h, w, C]
+        xy = torch.from_numpy(cam.pixel_grid().astype(np.float32)).to(device)  # [H*W, 2]
+        view = torch.zeros(len(xy), dtype=torch.long, device=device)
+        target = bilinear_lookup(maps, view, xy, dino[1][i : i + 1])
+        target = target.reshape(*image.shape[:2], -1)  # [H, W, C]
         fg = torch.from_numpy(mask if mask is not None else out["opacity"] > 0.5).to(device)
         rendered = torch.from_numpy(out["features"]).to(device)
         cos_field.append(float(F.cosine_similarity(rendered[fg], target[fg], dim=-1).mean()))

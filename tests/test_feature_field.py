@@ -13,9 +13,11 @@ from edit.dino import sample_features
 from recon.features import (
     FeaturesConfig,
     bilinear_lookup,
+    crop_to_box,
     distill_features,
     foreground_pca,
     load_features,
+    object_box,
 )
 from recon.rundir import RunDir
 from render.errors import SineError
@@ -26,7 +28,9 @@ from render.io import read_json, read_yaml
 def test_bilinear_lookup_hand_values_and_grid_sample():
     maps = torch.tensor([[0.0, 1.0], [2.0, 3.0]])[None, :, :, None]  # [1, 2, 2, 1]
     xy = torch.tensor([[4.0, 4.0], [2.0, 2.0], [6.0, 2.0], [0.5, 7.9]])  # image 8x8
-    got = bilinear_lookup(maps, torch.zeros(4, dtype=torch.long), xy, (8, 8))[:, 0]
+    got = bilinear_lookup(
+        maps, torch.zeros(4, dtype=torch.long), xy, torch.tensor([[0, 0, 8, 8.0]])
+    )[:, 0]
     # centre: mean of all four; the patch centres (2, 2) and (6, 2): exact values; clamped corner
     assert got.tolist() == pytest.approx([1.5, 0.0, 1.0, 2.0])
     g = torch.Generator().manual_seed(0)
@@ -39,7 +43,27 @@ def test_bilinear_lookup_hand_values_and_grid_sample():
             for v, p in zip(view, xy, strict=True)
         ]
     )
-    assert torch.allclose(bilinear_lookup(maps, view, xy, (50, 70)), ref, atol=1e-5)
+    boxes = torch.tensor([[0, 0, 70, 50.0]]).repeat(3, 1)
+    assert torch.allclose(bilinear_lookup(maps, view, xy, boxes), ref, atol=1e-5)
+
+
+def test_object_crop_maps_pixels_back_to_the_image():
+    mask = np.zeros((60, 80), bool)
+    mask[20:30, 10:50] = True  # 40 x 10 px
+    box = object_box(mask, margin=0.1)
+    assert box == pytest.approx((6.0, 1.0, 48.0, 48.0))  # centre (30, 25), side 40 * 1.2
+    # an image whose channels are its own pixel coordinates: crop it (enlarged 2x and shrunk
+    # 3x), then look the crop up at image pixels -> their own coordinates
+    v, u = np.mgrid[0:60, 0:80].astype(np.float32) + 0.5
+    coords = np.stack([u, v], axis=-1)  # [60, 80, 2]
+    xy = torch.tensor([[30.5, 25.5], [10.0, 12.0], [45.2, 40.7]])
+    for size in (96, 16):
+        crop = crop_to_box(coords, box, (size, size))  # [size, size, 2]
+        got = bilinear_lookup(
+            torch.from_numpy(crop)[None], torch.zeros(3, dtype=torch.long), xy, torch.tensor([box])
+        )
+        tol = 0.01 if size == 96 else 0.2  # shrinking averages over a few pixels
+        assert torch.allclose(got, xy, atol=tol), (size, got)
 
 
 def test_pca_basis_project_decode_roundtrip():
@@ -89,8 +113,12 @@ def test_rendered_features_beat_an_untrained_field(run_root):
     cams = RunDir(run_root).load_cameras().frames
     cam = next(c for c in cams if c.split == "train")
     cache = torch.load(RunDir(run_root).features / "dino_cache.pt", weights_only=False)
-    target = cache["features"][cache["key"]["names"].index(cam.name)].float()  # [C, h, w]
-    target = torch.nn.functional.interpolate(target[None], size=(64, 64), mode="bilinear")[0]
+    i = cache["key"]["names"].index(cam.name)
+    maps = cache["features"][i : i + 1].float().permute(0, 2, 3, 1)  # [1, h, w, C]
+    box = torch.tensor(cache["key"]["boxes"][i : i + 1])  # the object crop DINO saw
+    xy = torch.from_numpy(cam.pixel_grid().astype(np.float32))
+    target = bilinear_lookup(maps, torch.zeros(len(xy), dtype=torch.long), xy, box)
+    target = target.T.reshape(-1, 64, 64)  # [C, H, W]
     fresh = FeatureField(field.cfg)
     fresh.set_basis(field.mean, field.components)
 

@@ -94,3 +94,54 @@ def test_seeded_and_region_resized():
     assert (a[:, 0] > 0.9).all()
     with pytest.raises(SineError, match="empty"):
         fit_region_centres(feats, np.zeros((20, 20), bool), cfg)
+
+
+def test_contrast_rule_takes_faces_of_the_part_the_threshold_misses():
+    # Editing view: part 0 (painted, e_0) above part 1 (e_1), the rest of the object.
+    lab = np.zeros((20, 20), int)
+    lab[10:] = 1
+    feats = _feature_map(lab, seed=0, noise=0.0)
+    painted, obj = lab == 0, np.ones_like(lab, bool)
+    cfg = SemanticMaskConfig(num_samples=100, rest_margin=0)
+    contrast = SemanticMasks(feats, painted, cfg, object_mask=obj)
+    threshold = SemanticMasks(feats, painted, SemanticMaskConfig(num_samples=100, rule="threshold"))
+    assert contrast.rule == "contrast" and threshold.rule == "threshold"
+    # Another view, three pixels: an unseen face of part 0 (cos 0.8 to e_0: d 0.63 > 0.5), a
+    # neighbour that is mostly part 1 but a little like part 0 (cos 0.6 to e_0, 0.8 to e_1),
+    # and an unrelated part (mostly e_3, a little like part 1).
+    other = torch.stack(
+        [
+            0.8 * _basis(0) + 0.6 * _basis(4),
+            0.6 * _basis(0) + 0.8 * _basis(1),
+            0.95 * _basis(3) + 0.3122 * _basis(1),
+        ],
+        dim=1,
+    )[:, None]  # [C, 1, 3]
+    assert threshold.mask(other)[0].tolist() == [False, False, False]
+    assert contrast.mask(other)[0].tolist() == [True, False, False]
+    # The editing view itself is exact under both rules.
+    assert contrast.mask(feats).numpy().tolist() == painted.tolist()
+
+
+def test_contrast_rule_falls_back_without_a_rest_of_the_object():
+    lab = np.zeros((12, 12), int)
+    feats = _feature_map(lab, seed=0)
+    everything = np.ones_like(lab, bool)
+    masks = SemanticMasks(feats, everything, SemanticMaskConfig(num_samples=50), everything)
+    assert masks.rule == "threshold" and masks.other_centres is None
+    assert SemanticMasks(feats, everything, SemanticMaskConfig(num_samples=50)).rule == "threshold"
+
+
+def test_guided_refinement_moves_a_blurred_edge_onto_the_image_edge():
+    from edit.semantic_masks import guided_refine
+
+    x = np.arange(40, dtype=np.float32)[None, :].repeat(40, 0)  # [40, 40] column index
+    image = np.repeat((x >= 20)[..., None], 3, axis=2).astype(np.float32)  # black | white
+    # a soft score like a patch-blurred feature decision: its zero crossing is 2 px off the edge
+    score = torch.from_numpy(np.tanh((22.0 - x) / 4.0))
+    assert (score > 0).numpy().tolist() != (x < 20).tolist()
+    refined = guided_refine(score, image, np.ones((40, 40), bool), radius=0.2, eps=0.01)
+    assert (refined > 0).numpy().tolist() == (x < 20).tolist()
+    # no object pixels: nothing to scale the radius by, the score is returned as it is
+    same = guided_refine(score, image, np.zeros((40, 40), bool), radius=0.1, eps=0.01)
+    assert torch.equal(same, score)
