@@ -203,7 +203,7 @@ def mask_table() -> None:
     print(f"at azimuth {edit_view[0]:.0f} deg; IoU with the ground-truth head pixels in each view")
     header = " ".join(f"az{a:.0f}/el{e:.0f}" for a, e in others)
     print(f"{'object':<11} {'short side':>10} {'edit view':>10} {header}")
-    cfg = SemanticMaskConfig()
+    cfg = SemanticMaskConfig(rule="threshold")  # the paper's rule on raw patch features
     for textured in (False, True):
         views = [_render(spot, a, e, textured) for a, e in [edit_view, *others]]
         imgs = torch.from_numpy(np.stack([im for im, _ in views])).permute(0, 3, 1, 2)

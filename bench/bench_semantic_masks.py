@@ -9,7 +9,7 @@ feature field never saw, and over every other view) and the stage timings.
 
     .venv/bin/python bench/bench_semantic_masks.py [--work /tmp/sine_bench_masks] [--views 36]
         [--object toycar] [--size 256] [--fit-iterations 300] [--feature-iterations 600]
-        [--edit-views 2 11] [--rules contrast+refine threshold] [--crop object]
+        [--edit-views 2 11 | all] [--rules contrast+refine threshold] [--crop object]
 
 Finished stages are reused when re-run with the same --work folder (delete it to start over).
 """
@@ -59,7 +59,10 @@ def main() -> None:
         help="mask rules compared (+refine: edges guided by the view's image)",
     )
     ap.add_argument(
-        "--edit-views", type=int, nargs="+", default=[2, 11], help="indices of editing views"
+        "--edit-views",
+        nargs="+",
+        default=["2", "11"],
+        help="indices of editing views, or 'all' (every training view: per-part summary only)",
     )
     ap.add_argument("--erode", type=int, default=2, help="erode the painted GT part by N pixels")
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
@@ -110,7 +113,7 @@ def main() -> None:
         crop=args.crop,
         geo_feat=args.geo_feat,
     )
-    feats = stage("features", timings, distill_features, run.root, feat_cfg, progress=False)
+    feat_metrics = stage("features", timings, distill_features, run.root, feat_cfg, progress=False)
 
     parts = {int(k): v for k, v in read_json(synth_dir / "parts.json").items()}
     cams = run.load_cameras().frames
@@ -124,7 +127,11 @@ def main() -> None:
     seconds_render = (time.perf_counter() - t0) / len(cams)
     kernel = np.ones((2 * args.erode + 1, 2 * args.erode + 1), np.uint8)
     rows, seconds_masks = [], []
-    for ev in args.edit_views:
+    if args.edit_views == ["all"]:
+        edit_views = [i for i, c in enumerate(cams) if c.split == "train"]
+    else:
+        edit_views = [int(v) for v in args.edit_views]
+    for ev in edit_views:
         edit = cams[ev]
         feats, on_object = maps[edit.name]
         for part, name in parts.items():
@@ -163,10 +170,20 @@ def main() -> None:
         f"{'prec test':>9} {'rec test':>9} {'IoU all':>8} {'IoU min':>8}"
     )
     for view, name, rule, px, iou, prec, rec, iou_all, iou_min in rows:
-        print(
-            f"{view:<10} {name:<8} {rule:<16} {px:>8} {iou:>9.3f} {prec:>9.3f} {rec:>9.3f} "
-            f"{iou_all:>8.3f} {iou_min:>8.3f}"
-        )
+        if len(edit_views) <= 8:
+            print(
+                f"{view:<10} {name:<8} {rule:<16} {px:>8} {iou:>9.3f} {prec:>9.3f} {rec:>9.3f} "
+                f"{iou_all:>8.3f} {iou_min:>8.3f}"
+            )
+    print(f"\nper part over the {len(edit_views)} editing views (mean test IoU of each)")
+    print(f"{'part':<8} {'rule':<16} {'mean':>6} {'median':>7} {'min':>6} {'>= 0.8':>7}")
+    for name in parts.values():
+        for rule in args.rules:
+            ious = np.array([r[4] for r in rows if r[1] == name and r[2] == rule])
+            print(
+                f"{name:<8} {rule:<16} {ious.mean():>6.3f} {np.median(ious):>7.3f} "
+                f"{ious.min():>6.3f} {np.mean(ious >= 0.8):>7.0%}"
+            )
     n_test = sum(1 for c in cams if c.split != "train")
     print(f"(test: the {n_test} held-out views, never seen by the fit or the feature field;")
     print(" all: every view but the editing view; painted: pixels of the painted region)")
@@ -175,9 +192,10 @@ def main() -> None:
         print(f"  {key:<10} {value:8.1f}")
     print(
         f"  fit: held-out PSNR {fit.get('heldout_psnr', float('nan')):.2f} dB; features: DINO "
-        f"{feats['dino_seconds']:.1f} s, ray pool {feats['pool_seconds']:.1f} s, training "
-        f"{feats['train_seconds']:.1f} s ({feats['iterations']} steps), held-out rel. error "
-        f"{feats['heldout_rel_error']:.3f}, centred cosine {feats['heldout_centred_cosine']:.3f}"
+        f"{feat_metrics['dino_seconds']:.1f} s, ray pool {feat_metrics['pool_seconds']:.1f} s, "
+        f"training {feat_metrics['train_seconds']:.1f} s ({feat_metrics['iterations']} steps), "
+        f"held-out rel. error {feat_metrics['heldout_rel_error']:.3f}, centred cosine "
+        f"{feat_metrics['heldout_centred_cosine']:.3f}"
     )
     print(
         f"  masks: feature render {seconds_render:.2f} s per view, K-means + distances "

@@ -165,14 +165,20 @@ def semantic_masks(
     progress: bool = True,
 ) -> dict:
     """Masks for every view of `run_dir` from a painted region ([H, W] bool or a PNG path)."""
-    import torch
+    from render.device import torch_threads
+
+    cfg = cfg or MasksConfig()
+    with torch_threads(cfg.threads):
+        return _semantic_masks(run_dir, view, region, out_dir, cfg, mask_cfg, progress)
+
+
+def _semantic_masks(run_dir, view, region, out_dir, cfg: MasksConfig, mask_cfg, progress) -> dict:
     from tqdm import tqdm
 
     from edit.semantic_masks import SemanticMaskConfig, SemanticMasks
     from recon.rundir import RunDir
     from render.io import write_image, write_json, write_mask
 
-    cfg = cfg or MasksConfig()
     mask_cfg = mask_cfg or SemanticMaskConfig()
     t_start = time.perf_counter()
     run = RunDir(run_dir)
@@ -184,8 +190,6 @@ def semantic_masks(
         region = np.asarray(region, bool)
         if region.shape != (edit_cam.height, edit_cam.width) or not region.any():
             raise SineError(f"region must be a non-empty {edit_cam.width}x{edit_cam.height} mask")
-    if cfg.threads > 0:
-        torch.set_num_threads(cfg.threads)
     render = FeatureMapRenderer(run.root, cfg)
 
     t0 = time.perf_counter()

@@ -30,7 +30,7 @@ from recon.fit import load_fitted, load_views, make_sampler
 from recon.rundir import RunDir
 from recon.training import finished_metrics, restore_state, save_state
 from render.configs import option, to_dict
-from render.device import check_finite, pick_device
+from render.device import check_finite, pick_device, torch_threads
 from render.errors import SineError
 from render.feature_field import (
     FeatureField,
@@ -338,11 +338,13 @@ def distill_features(
 ) -> dict:
     """Trains (or resumes) the feature field of `run_dir`; returns the metrics dict."""
     cfg = cfg or FeaturesConfig()
-    run = RunDir(run_dir)
+    with torch_threads(cfg.threads):
+        return _distill(RunDir(run_dir), cfg, force, progress, stop_at)
+
+
+def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop_at) -> dict:
     run.require("cameras")
     device = pick_device(cfg.device)
-    if cfg.threads > 0:
-        torch.set_num_threads(cfg.threads)
     t_start = time.perf_counter()
     ckpt_path = run.features / "checkpoint.pt"
     final_path = run.features / "field.pt"

@@ -28,7 +28,7 @@ from tqdm import tqdm
 from recon.rundir import RunDir
 from recon.training import finished_metrics, restore_state, save_state
 from render.configs import option, to_dict, update_from_dict
-from render.device import check_finite, pick_device
+from render.device import check_finite, pick_device, torch_threads
 from render.errors import SineError
 from render.hashgrid import HashGridConfig
 from render.io import atomic_path, read_image, read_mask, write_image, write_json
@@ -290,13 +290,8 @@ def fit_template(
     if not run.proxy_mesh.is_file() and cfg.sampler == "band":
         raise SineError(f"{run.root} has no proxy_mesh.ply yet; run `sine recon {run.root}` first")
     device = pick_device(cfg.device)
-    threads_before = torch.get_num_threads()
-    if cfg.threads > 0:
-        torch.set_num_threads(cfg.threads)
-    try:
+    with torch_threads(cfg.threads):
         return _fit(run, cfg, device, force, progress, stop_at)
-    finally:
-        torch.set_num_threads(threads_before)
 
 
 def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_at) -> dict:

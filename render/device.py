@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import torch
 
 from render.errors import SineError
@@ -14,6 +16,18 @@ def pick_device(name: str = "auto") -> torch.device:
     if name == "cuda" and not torch.cuda.is_available():
         raise SineError("--device cuda requested but torch sees no CUDA device; use --device cpu")
     return torch.device(name)
+
+
+@contextmanager
+def torch_threads(n: int):
+    """Within the block torch uses n CPU threads (n <= 0: unchanged); restored afterwards."""
+    before = torch.get_num_threads()
+    if n > 0:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def check_finite(loss: torch.Tensor, step: int, stage: str, checkpoint_dir) -> None:

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from render.device import check_finite, pick_device
+from render.device import check_finite, pick_device, torch_threads
 from render.errors import SineError
 
 
@@ -19,3 +19,16 @@ def test_nan_loss_stops_training_with_a_readable_message(tmp_path):
     for bad in (float("nan"), float("inf")):
         with pytest.raises(SineError, match=r"sine fit diverged at step 7 .*checkpoint"):
             check_finite(torch.tensor(bad), 7, "sine fit", tmp_path)
+
+
+def test_torch_threads_sets_and_restores_the_thread_count():
+    before = torch.get_num_threads()
+    other = 1 if before != 1 else 2
+    with torch_threads(other):
+        assert torch.get_num_threads() == other
+    assert torch.get_num_threads() == before
+    with torch_threads(0):  # 0: unchanged
+        assert torch.get_num_threads() == before
+    with pytest.raises(RuntimeError), torch_threads(other):
+        raise RuntimeError("restored on errors too")
+    assert torch.get_num_threads() == before
