@@ -4,8 +4,10 @@ The feature field (from `sine features`) is rendered at the editing view; the fe
 user's painted region are K-means clustered (edit/semantic_masks.py, the paper's K = 15, 1000
 samples), and so are those of the rest of the object; then every view's rendered feature map gives
 its editable pixels (nearer to the painted part than to the rest; or the paper's threshold 0.5 with
---rule threshold), restricted to the object (template opacity). Writes DIR/masks/<view>.png (0/255),
-DIR/overlay_contact_sheet.png, DIR/semantic_centres.npy ([K, C]) and DIR/metrics.json.
+--rule threshold), restricted to the object (template opacity), edges guided by the view's image.
+Writes DIR/masks/<view>.png (0/255), DIR/overlay_contact_sheet.png, DIR/semantic_centres.npy
+([K, C] painted part), DIR/semantic_rest_centres.npy ([K, C] rest, contrast rule) and
+DIR/metrics.json.
 """
 
 from __future__ import annotations
@@ -27,8 +29,10 @@ Semantic masks (SINE Sec. 3): renders the distilled DINO feature field of RUN at
 and to the rest of the object, and marks a pixel of any view editable when its normalised feature
 is nearer to the painted part's centres than to the rest's (--rule contrast, default) or within
 --threshold of them (--rule threshold, the paper's rule). Paint the whole part as the editing view
-shows it: with the contrast rule, what is left unpainted counts as the rest of the object. Writes
-DIR/masks/<view>.png, DIR/overlay_contact_sheet.png, DIR/semantic_centres.npy and DIR/metrics.json.
+shows it: with the contrast rule, what is left unpainted counts as the rest of the object. Mask
+edges are snapped to the view's colour edges (guided filter; --no-refine to skip). Writes
+DIR/masks/<view>.png, DIR/overlay_contact_sheet.png, DIR/semantic_centres.npy (and
+semantic_rest_centres.npy) and DIR/metrics.json.
 """
 
 TINT = np.array([0.0, 0.9, 1.0], np.float32)  # editable pixels in the contact sheet (cyan)
@@ -224,6 +228,9 @@ def _semantic_masks(run_dir, view, region, out_dir, cfg: MasksConfig, mask_cfg, 
         tiles.append(overlay(image, editable, cfg.tint, cfg.thumbnail_width, i == index))
     write_image(out_dir / "overlay_contact_sheet.png", contact_sheet(tiles, cfg.columns))
     np.save(out_dir / "semantic_centres.npy", masks.centres.cpu().numpy().astype(np.float32))
+    if masks.other_centres is not None:
+        rest = masks.other_centres.cpu().numpy().astype(np.float32)
+        np.save(out_dir / "semantic_rest_centres.npy", rest)
     metrics = {
         "run": str(run.root),
         "edit_view": edit_cam.name,

@@ -45,6 +45,15 @@ def test_masks_cli_writes_masks_sheet_and_metrics(run_root, tmp_path):
     assert metrics["region_pixels"] == int(region.sum())
     assert metrics["config"]["num_clusters"] == 15 and metrics["config"]["num_samples"] == 200
     assert np.load(out / "semantic_centres.npy").shape == (15, 64)  # centred: PCA coefficients
+    assert metrics["rule"] == "contrast" and metrics["config"]["refine"] is True
+    assert np.load(out / "semantic_rest_centres.npy").shape == (15, 64)
+    # the part's mask agrees with the GT body in the other views better than chance
+    ious = []
+    for cam in cams[2:]:
+        got = cv2.imread(str(out / "masks" / (cam.name.rsplit(".", 1)[0] + ".png")), 0) > 0
+        gt = _labels(run_root, cam.name) == 1
+        ious.append((got & gt).sum() / max((got | gt).sum(), 1))
+    assert np.mean(ious) > 0.5, ious
 
 
 def test_wrong_size_empty_or_off_object_region_is_an_error(run_root, tmp_path, capsys):
