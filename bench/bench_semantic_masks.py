@@ -64,6 +64,9 @@ def main() -> None:
         default=["2", "11"],
         help="indices of editing views, or 'all' (every training view: per-part summary only)",
     )
+    ap.add_argument(
+        "--render-scale", type=float, default=0.5, help="feature maps rendered at this scale"
+    )
     ap.add_argument("--erode", type=int, default=2, help="erode the painted GT part by N pixels")
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
     args = ap.parse_args()
@@ -121,7 +124,9 @@ def main() -> None:
         c.name: read_label_map(synth_dir / "labels" / (Path(c.name).stem + ".png")) for c in cams
     }
     t0 = time.perf_counter()
-    render = FeatureMapRenderer(run.root, MasksConfig(space=args.space))
+    render = FeatureMapRenderer(
+        run.root, MasksConfig(space=args.space, render_scale=args.render_scale)
+    )
     maps = {c.name: render(c) for c in cams}  # name -> (features [C, H, W], object [H, W])
     images = {c.name: view_image(run, c) for c in cams}
     seconds_render = (time.perf_counter() - t0) / len(cams)
@@ -162,7 +167,8 @@ def main() -> None:
 
     print(
         f"\nsemantic masks: {args.object} {args.views} views {args.size}x{args.size}, painted = GT "
-        f"part eroded {args.erode} px, space {args.space}, DINO {args.crop} crop short side "
+        f"part eroded {args.erode} px, space {args.space}, render scale {args.render_scale}, DINO "
+        f"{args.crop} crop short side "
         f"{args.short_side}, geo_feat {args.geo_feat}, K=15, 1000 samples (threshold rule: 0.5)"
     )
     print(

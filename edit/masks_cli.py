@@ -53,6 +53,11 @@ class MasksConfig:
     thumbnail_width: int = option(160, "contact-sheet thumbnail width in pixels")
     columns: int = option(6, "contact-sheet thumbnails per row")
     tint: float = option(0.55, "contact sheet: opacity of the tint over editable pixels")
+    render_scale: float = option(
+        0.5,
+        "feature maps are rendered at this fraction of the image size and upsampled (DINO "
+        "features are smooth; the image-guided edges restore the detail): 0.5 is ~4x faster",
+    )
     chunk: int = option(4096, "rays per chunk when rendering feature maps")
     device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
     threads: int = option(0, "torch CPU threads (0: torch's default)")
@@ -131,7 +136,8 @@ def contact_sheet(tiles: list[np.ndarray], columns: int) -> np.ndarray:
 
 
 class FeatureMapRenderer:
-    """Renders a run's feature field for a camera: (features [C, H, W], object mask [H, W])."""
+    """Renders a run's feature field for a camera: (features [C, H, W], object mask [H, W]),
+    at `render_scale` of the camera's size, upsampled bilinearly to it."""
 
     def __init__(self, run_dir, cfg: MasksConfig | None = None):
         from recon.features import load_features
@@ -143,11 +149,15 @@ class FeatureMapRenderer:
 
     def __call__(self, camera):
         import torch
+        import torch.nn.functional as F
 
         from render.feature_field import render_feature_map
 
+        scale = min(max(self.cfg.render_scale, 0.0), 1.0)
+        w, h = max(1, round(camera.width * scale)), max(1, round(camera.height * scale))
+        small = camera.resized(w, h) if (w, h) != (camera.width, camera.height) else camera
         out = render_feature_map(
-            camera,
+            small,
             self.template,
             self.field,
             self.sampler,
@@ -155,8 +165,14 @@ class FeatureMapRenderer:
             device=self.device,
             decode=self.cfg.space == "dino",
         )
-        feats = torch.from_numpy(out["features"]).permute(2, 0, 1)  # [C, H, W]
-        return feats, out["opacity"] >= self.cfg.min_opacity
+        feats = torch.from_numpy(out["features"]).permute(2, 0, 1)  # [C, h, w]
+        opacity = torch.from_numpy(out["opacity"])[None]  # [1, h, w]
+        if small is not camera:
+            size = (camera.height, camera.width)
+            feats = F.interpolate(feats[None], size=size, mode="bilinear", align_corners=False)[0]
+            opacity = F.interpolate(opacity[None], size=size, mode="bilinear", align_corners=False)
+            opacity = opacity[0]
+        return feats, (opacity[0] >= self.cfg.min_opacity).numpy()
 
 
 def semantic_masks(

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from feature_run_helpers import tiny_feature_run
 
-from edit.masks_cli import resolve_view, semantic_masks
+from edit.masks_cli import FeatureMapRenderer, MasksConfig, resolve_view, semantic_masks
 from recon.rundir import RunDir
 from render.errors import SineError
 from render.io import read_json, read_label_map, write_mask
@@ -105,3 +105,16 @@ def test_painted_part_selected_better_than_chance(run_root, tmp_path):
         chance = (frac * gt.sum()) / max(gt.sum() + frac * obj.sum() - frac * gt.sum(), 1)
         gains.append(iou - chance)
     assert np.mean(gains) > 0.15
+
+
+def test_half_scale_feature_maps_match_full_scale(run_root):
+    import torch
+
+    cam = RunDir(run_root).load_cameras().frames[2]
+    full, obj_full = FeatureMapRenderer(run_root, MasksConfig(render_scale=1.0))(cam)
+    half, obj_half = FeatureMapRenderer(run_root, MasksConfig(render_scale=0.5))(cam)
+    assert half.shape == full.shape == (64, 64, 64) and obj_half.shape == (64, 64)  # [C, H, W]
+    both = torch.from_numpy(obj_full & obj_half)
+    assert (obj_full != obj_half).mean() < 0.05  # only edge pixels differ
+    cos = torch.nn.functional.cosine_similarity(full[:, both], half[:, both], dim=0)
+    assert cos.median() > 0.95, cos.median()
