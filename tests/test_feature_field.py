@@ -181,3 +181,22 @@ def test_resume_matches_uninterrupted_and_skips_when_done(run_root, tmp_path):
 def test_missing_feature_field_is_a_clear_error(tmp_path):
     with pytest.raises(SineError, match="sine features"):
         load_features(tmp_path)
+
+
+def test_dino_features_crop_the_object_and_fall_back_to_the_image(run_root, tmp_path):
+    from recon.features import dino_features
+    from recon.fit import load_views
+
+    run = RunDir(run_root)
+    views = load_views(run, "train")[:2]
+    tmp_run = RunDir(tmp_path / "run")  # its own cache file
+    cfg = FeaturesConfig(crop="object", crop_margin=0.1)
+    cropped = dino_features(tmp_run, views, cfg, torch.device("cpu"), progress=False)
+    for (_, _, mask), box in zip(views, cropped["boxes"], strict=True):
+        assert box.tolist() == pytest.approx(object_box(mask, 0.1))
+    assert cropped["features"].shape[-2:] == (16, 16)  # 224 / 14 over the crop
+    # a view without a mask: every view gets the whole image
+    no_mask = [views[0], (views[1][0], views[1][1], None)]
+    whole = dino_features(tmp_run, no_mask, cfg, torch.device("cpu"), progress=False)
+    assert whole["boxes"].tolist() == [[0.0, 0.0, 64.0, 64.0]] * 2
+    assert not torch.allclose(whole["features"], cropped["features"])  # the cache key changed
