@@ -16,9 +16,14 @@ import sys
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The `sine` parser; only the command named in `argv` gets its full options (building all
+    of them would import torch and Open3D just to print `sine --help`)."""
     from edit import commands as edit_commands
     from recon import commands as recon_commands
+
+    args = sys.argv[1:] if argv is None else argv
+    selected = next((a for a in args if not a.startswith("-")), None)
 
     parser = argparse.ArgumentParser(
         prog="sine",
@@ -28,15 +33,15 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    recon_commands.register(sub)
-    edit_commands.register(sub)
+    recon_commands.register(sub, selected)
+    edit_commands.register(sub, selected)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     from render.errors import SineError
 
-    parser = build_parser()
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     try:
         result = args.func(args)

@@ -116,10 +116,14 @@ def run_demo(cfg: DemoConfig) -> dict:
     return summary
 
 
+NAME = "demo"
+HELP = "run the whole pipeline on the built-in procedural object"
+
+
 def add_parser(sub) -> None:
     parser = sub.add_parser(
-        "demo",
-        help="run the whole pipeline on the built-in procedural object",
+        NAME,
+        help=HELP,
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -266,12 +266,16 @@ def _semantic_masks(run_dir, view, region, out_dir, cfg: MasksConfig, mask_cfg, 
     return metrics
 
 
+NAME = "masks"
+HELP = "semantic masks of a painted part in every view (DINO feature field + K-means)"
+
+
 def add_parser(sub) -> argparse.ArgumentParser:
     from edit.semantic_masks import SemanticMaskConfig
 
     parser = sub.add_parser(
-        "masks",
-        help="semantic masks of a painted part in every view (DINO feature field + K-means)",
+        NAME,
+        help=HELP,
         description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

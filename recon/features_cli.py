@@ -16,12 +16,16 @@ RUN/features/. An interrupted run resumes from its checkpoint; --force starts ov
 """
 
 
+NAME = "features"
+HELP = "distil DINO features into a feature field (RUN/features/)"
+
+
 def add_parser(sub) -> argparse.ArgumentParser:
     from recon.features import FeaturesConfig
 
     parser = sub.add_parser(
-        "features",
-        help="distil DINO features into a feature field (RUN/features/)",
+        NAME,
+        help=HELP,
         description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

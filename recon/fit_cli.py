@@ -15,12 +15,16 @@ An interrupted fit resumes from the latest checkpoint when re-run; --force start
 """
 
 
+NAME = "fit"
+HELP = "fit the template radiance field (RUN/template/)"
+
+
 def add_parser(sub) -> argparse.ArgumentParser:
     from recon.fit import FitConfig
 
     parser = sub.add_parser(
-        "fit",
-        help="fit the template radiance field (RUN/template/)",
+        NAME,
+        help=HELP,
         description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

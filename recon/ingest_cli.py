@@ -9,11 +9,14 @@ from recon.ingest import IngestConfig, ingest_capture
 from recon.rundir import RunDir
 from render.configs import add_options, from_args
 
+NAME = "ingest"
+HELP = "read a capture (images, video, transforms.json, COLMAP, ...) into a run directory"
+
 
 def add_parser(sub) -> None:
     parser = sub.add_parser(
-        "ingest",
-        help="read a capture (images, video, transforms.json, COLMAP, ...) into a run directory",
+        NAME,
+        help=HELP,
         description=(
             "Reads a capture into a run directory: working images (undistorted, resized to "
             "--width), captures.json, and cameras.json / masks / depth when the capture carries "

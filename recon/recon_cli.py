@@ -8,14 +8,17 @@ from pathlib import Path
 from recon.rundir import RunDir
 from render.configs import add_options, from_args
 
+NAME = "recon"
+HELP = "reconstruct a capture: masks, poses, normalisation, depth, proxy mesh, report"
+
 
 def add_parser(sub) -> None:
     from recon.ingest import IngestConfig
     from recon.pipeline import ReconConfig
 
     parser = sub.add_parser(
-        "recon",
-        help="reconstruct a capture: masks, poses, normalisation, depth, proxy mesh, report",
+        NAME,
+        help=HELP,
         description=(
             "Turntable-aware reconstruction as idempotent stages (ingest -> masks -> poses -> "
             "normalize -> depth -> proxy_mesh -> report). Finished stages are skipped; --force "

@@ -17,12 +17,16 @@ Every 8th view (0, 8, 16, ...) is a held-out "test" view.
 """
 
 
+NAME = "synth"
+HELP = "render a synthetic turntable with ground truth (images, masks, depth, parts, edits)"
+
+
 def add_parser(sub) -> argparse.ArgumentParser:
     from recon.synth import SynthConfig
 
     parser = sub.add_parser(
-        "synth",
-        help="render a synthetic turntable with ground truth (images, masks, depth, parts, edits)",
+        NAME,
+        help=HELP,
         description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -413,7 +413,7 @@ def test_cli_help_lists_every_option(capsys):
     from sine_cli import build_parser
 
     with pytest.raises(SystemExit):
-        build_parser().parse_args(["ingest", "--help"])
+        build_parser(["ingest"]).parse_args(["ingest", "--help"])
     out = capsys.readouterr().out
     for flag in ("--out", "--width", "--frames", "--holdout-every", "--format", "--ignore-poses",
                  "--masks", "--force"):  # fmt: skip

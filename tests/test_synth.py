@@ -281,7 +281,7 @@ def test_unreadable_mesh(tmp_path):
 def test_cli_help_and_exit_code(tmp_path, capsys):
     import sine_cli
 
-    parser = sine_cli.build_parser()
+    parser = sine_cli.build_parser(["synth"])
     sub = next(a for a in parser._actions if a.dest == "command").choices["synth"]
     for action in sub._actions:
         assert action.help, action.dest
