@@ -1,13 +1,15 @@
 """Distil DINO patch features into a feature field on the frozen template (`sine features RUN`).
 
-1. DINO patch features of every capture (short side `short_side`, patch grid h x w), computed once
-   and cached in RUN/features/dino_cache.pt; a PCA basis (D channels) of the foreground features.
+1. DINO patch features of every capture, computed once on a square crop around the view's mask
+   (`crop`; short side `short_side`, patch grid h x w) and cached in RUN/features/dino_cache.pt
+   with each map's image box; a PCA basis (D channels) of the foreground features.
 2. Foreground rays of the training views are cast once against the proxy; the frozen template's
    density gives each ray's sample weights, of which the `top_k` largest (and their points) are
    kept: training then only queries the feature field.
 3. Training: random rays, rendered feature = composite(weights, field(points)) / opacity, target =
-   the bilinearly interpolated patch features at the pixel (in PCA coefficients); loss = squared
-   error relative to the targets' variance (+ optional cosine term on the decoded features).
+   the patch features (PCA coefficients) bilinearly interpolated at the pixel through the view's
+   crop box; loss = squared error relative to the targets' variance (+ optional cosine term on
+   the decoded features).
 
 Writes into RUN/features/: checkpoint.pt (resumable, like `sine fit`), field.pt (final field,
 `load_features`), metrics.json (held-out cosine similarity to DINO), log.json and
