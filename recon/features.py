@@ -30,7 +30,7 @@ from tqdm import tqdm
 
 from recon.fit import load_fitted, load_views, make_sampler
 from recon.rundir import RunDir
-from recon.training import finished_metrics, restore_state, save_state
+from recon.training import Training, finished_metrics
 from render.configs import option, to_dict
 from render.device import check_finite, pick_device, torch_threads
 from render.errors import SineError
@@ -390,37 +390,26 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
         sample = bilinear_lookup(maps, pool.view[:20000], pool.xy[:20000], boxes)
         target_var = float(sample.var(0).sum().clamp_min(1e-8))
 
-    optimizer = torch.optim.Adam(field.param_groups(cfg.lr_grid, cfg.lr_mlp), betas=(0.9, 0.99))
-    decay = cfg.lr_final_factor ** (1.0 / max(cfg.iterations, 1))
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: decay**step)
-    generator = torch.Generator().manual_seed(cfg.seed)
-    modules = {"field": field}
-    step, log, train_seconds = restore_state(
-        ckpt_path, to_dict(cfg), _RUNTIME_KEYS, modules, optimizer, scheduler, generator
+    train = Training(
+        ckpt_path,
+        to_dict(cfg),
+        _RUNTIME_KEYS,
+        {"field": field},
+        field.param_groups(cfg.lr_grid, cfg.lr_mlp),
+        cfg.iterations,
+        cfg.lr_final_factor,
+        cfg.seed,
     )
-
-    def checkpoint():
-        save_state(
-            ckpt_path,
-            to_dict(cfg),
-            modules,
-            optimizer,
-            scheduler,
-            generator,
-            step,
-            log,
-            train_seconds,
-        )
 
     n_pool = len(pool.weights)
     last = min(cfg.iterations, stop_at) if stop_at is not None else cfg.iterations
     bar = tqdm(
-        total=cfg.iterations, initial=step, disable=not progress, desc="features", unit="step"
+        total=cfg.iterations, initial=train.step, disable=not progress, desc="features", unit="step"
     )
     field.train()
-    while step < last:
+    while train.step < last:
         t0 = time.perf_counter()
-        idx = torch.randint(n_pool, (cfg.batch_rays,), generator=generator).to(device)
+        idx = torch.randint(n_pool, (cfg.batch_rays,), generator=train.generator).to(device)
         pred = _render(field, pool, idx)  # [B, D]
         with torch.no_grad():
             target = bilinear_lookup(maps, pool.view[idx], pool.xy[idx], boxes)  # [B, D]
@@ -429,30 +418,26 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
         if cfg.cosine_weight > 0:
             cos = F.cosine_similarity(field.decode(pred), field.decode(target), dim=-1).mean()
             loss = loss + cfg.cosine_weight * (1.0 - cos)
-        check_finite(loss, step, "sine features", run.features)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        scheduler.step()
-        step += 1
-        train_seconds += time.perf_counter() - t0
+        check_finite(loss, train.step, "sine features", run.features)
+        train.update(loss, t0)
+        step = train.step
         if step % cfg.log_every == 0 or step == cfg.iterations:
-            log.append(
+            train.log.append(
                 {
                     "step": step,
                     "loss": loss.item(),
                     "rel_error": rel.item(),
-                    "seconds": train_seconds,
+                    "seconds": train.seconds,
                 }
             )
         if step % 10 == 0 or step == last:
             bar.set_postfix(rel_error=f"{rel.item():.4f}")
         bar.update(1)
         if step % cfg.checkpoint_every == 0 or step == last:
-            checkpoint()
+            train.checkpoint()
     bar.close()
-    if step < cfg.iterations:
-        return {"step": step}
+    if train.step < cfg.iterations:
+        return {"step": train.step}
 
     with atomic_path(final_path) as tmp:
         torch.save(
@@ -479,13 +464,13 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
     )
     metrics.update(
         {
-            "iterations": step,
-            "train_seconds": train_seconds,
+            "iterations": train.step,
+            "train_seconds": train.seconds,
             "dino_seconds": seconds_dino,
             "pool_seconds": seconds_pool,
             "eval_seconds": time.perf_counter() - t_eval,
             "total_seconds": time.perf_counter() - t_start,
-            "final_rel_error": log[-1]["rel_error"] if log else None,
+            "final_rel_error": train.log[-1]["rel_error"] if train.log else None,
             "pool_rays": n_pool,
             "pca_dim": field.cfg.out_dim,
             "feature_dim": field.cfg.feature_dim,
@@ -494,7 +479,7 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
         }
     )
     write_json(metrics_path, metrics)
-    write_json(run.features / "log.json", log)
+    write_json(run.features / "log.json", train.log)
     run.append_config("features", cfg)
     return metrics
 

@@ -26,7 +26,7 @@ import torch
 from tqdm import tqdm
 
 from recon.rundir import RunDir
-from recon.training import finished_metrics, restore_state, save_state
+from recon.training import Training, finished_metrics
 from render.configs import option, to_dict, update_from_dict
 from render.device import check_finite, pick_device, torch_threads
 from render.errors import SineError
@@ -331,35 +331,27 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         groups.append(
             {"params": list(background.parameters()), "lr": cfg.lr_mlp, "name": "background"}
         )
-    optimizer = torch.optim.Adam(groups, betas=(0.9, 0.99))
-    decay = cfg.lr_final_factor ** (1.0 / max(cfg.iterations, 1))
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: decay**step)
-    generator = torch.Generator().manual_seed(cfg.seed)
-
     modules = {"field": field, "background": background}
-    step, log, train_seconds = restore_state(
-        ckpt_path, to_dict(cfg), _RUNTIME_KEYS, modules, optimizer, scheduler, generator
+    train = Training(
+        ckpt_path,
+        to_dict(cfg),
+        _RUNTIME_KEYS,
+        modules,
+        groups,
+        cfg.iterations,
+        cfg.lr_final_factor,
+        cfg.seed,
     )
-
-    def checkpoint():
-        save_state(
-            ckpt_path,
-            to_dict(cfg),
-            modules,
-            optimizer,
-            scheduler,
-            generator,
-            step,
-            log,
-            train_seconds,
-        )
+    generator = train.generator
 
     n_pool = len(pool.origins)
     last = min(cfg.iterations, stop_at) if stop_at is not None else cfg.iterations
-    bar = tqdm(total=cfg.iterations, initial=step, disable=not progress, desc="fit", unit="step")
+    bar = tqdm(
+        total=cfg.iterations, initial=train.step, disable=not progress, desc="fit", unit="step"
+    )
     field.train()
     rays_done, t_window = 0, time.perf_counter()
-    while step < last:
+    while train.step < last:
         t0 = time.perf_counter()
         idx = torch.randint(n_pool, (cfg.batch_rays,), generator=generator).to(device)
         out = render_rays(
@@ -382,22 +374,18 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         if background.learnable and len(pool.miss_rgb):
             j = torch.randint(len(pool.miss_rgb), (256,), generator=generator).to(device)
             loss = loss + torch.mean((background()[None] - pool.miss_rgb[j]) ** 2)
-        check_finite(loss, step, "sine fit", run.template)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        scheduler.step()
-        step += 1
-        train_seconds += time.perf_counter() - t0
+        check_finite(loss, train.step, "sine fit", run.template)
+        train.update(loss, t0)
+        step = train.step
         rays_done += cfg.batch_rays
         train_psnr = -10.0 * math.log10(max(mse.item(), 1e-12))
         if step % cfg.log_every == 0 or step in (1, cfg.iterations):
-            log.append(
+            train.log.append(
                 {
                     "step": step,
                     "loss": float(loss.item()),
                     "psnr": train_psnr,
-                    "seconds": train_seconds,
+                    "seconds": train.seconds,
                 }
             )
         if step % 10 == 0 or step == last:
@@ -410,11 +398,11 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
             rays_done, t_window = 0, now
         bar.update(1)
         if step % cfg.checkpoint_every == 0 or step == last:
-            checkpoint()
+            train.checkpoint()
     bar.close()
 
-    if step < cfg.iterations:  # stopped early on purpose
-        return {"step": step}
+    if train.step < cfg.iterations:  # stopped early on purpose
+        return {"step": train.step}
 
     field_path = run.template / "field.pt"
     with atomic_path(field_path) as tmp:
@@ -440,22 +428,22 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     )
     metrics.update(
         {
-            "iterations": step,
-            "train_seconds": train_seconds,
+            "iterations": train.step,
+            "train_seconds": train.seconds,
             "eval_seconds": time.perf_counter() - t_eval,
             "total_seconds": time.perf_counter() - t_start,
-            "rays_per_second": step * cfg.batch_rays / max(train_seconds, 1e-9),
+            "rays_per_second": train.step * cfg.batch_rays / max(train.seconds, 1e-9),
             "samples_per_ray": sampler.samples_per_ray,
             "sampler": cfg.sampler,
             "train_rays_needing_field": len(pool.origins),
             "train_rays_total": pool.n_total,
-            "final_train_psnr": log[-1]["psnr"] if log else None,
+            "final_train_psnr": train.log[-1]["psnr"] if train.log else None,
             "background_color": background().detach().cpu().tolist(),
             "background_learned": bool(background.learnable),
             "device": str(device),
         }
     )
     write_json(run.template / "metrics.json", metrics)
-    write_json(run.template / "log.json", log)
+    write_json(run.template / "log.json", train.log)
     run.append_config("fit", cfg)
     return metrics

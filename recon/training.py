@@ -1,4 +1,4 @@
-"""Checkpointed training state shared by `sine fit` and `sine features`.
+"""Checkpointed training state shared by `sine fit` and `sine features` (`Training`).
 
 A checkpoint holds the resolved config, every module's and the optimizer's / scheduler's state,
 the RNG states, the step, the log and the training seconds, so an interrupted run resumes to the
@@ -8,6 +8,7 @@ do not change the result: a checkpoint made with other values of those still res
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import torch
@@ -86,3 +87,52 @@ def restore_state(
     generator.set_state(state["generator"])
     torch.set_rng_state(state["torch_rng"])
     return state["step"], state["log"], state["train_seconds"]
+
+
+class Training:
+    """One resumable training stage (`sine fit`, `sine features`): Adam over `param_groups` with
+    a learning rate decaying exponentially to `lr_final_factor` at `iterations`, the seeded
+    generator for batches, and the step / log / seconds counters, restored from `path` when a
+    checkpoint with the same settings exists (else an error, see `restore_state`)."""
+
+    def __init__(
+        self,
+        path: Path,
+        config: dict,
+        runtime_keys: tuple[str, ...],
+        modules: dict,
+        param_groups: list,
+        iterations: int,
+        lr_final_factor: float,
+        seed: int,
+    ):
+        self.path, self.config, self.modules = path, config, modules
+        self.optimizer = torch.optim.Adam(param_groups, betas=(0.9, 0.99))
+        decay = lr_final_factor ** (1.0 / max(iterations, 1))
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda k: decay**k)
+        self.generator = torch.Generator().manual_seed(seed)
+        self.step, self.log, self.seconds = restore_state(
+            path, config, runtime_keys, modules, self.optimizer, self.scheduler, self.generator
+        )
+
+    def update(self, loss: torch.Tensor, started: float) -> None:
+        """One optimiser step on `loss`; the step began at time.perf_counter() == `started`."""
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        self.scheduler.step()
+        self.step += 1
+        self.seconds += time.perf_counter() - started
+
+    def checkpoint(self) -> None:
+        save_state(
+            self.path,
+            self.config,
+            self.modules,
+            self.optimizer,
+            self.scheduler,
+            self.generator,
+            self.step,
+            self.log,
+            self.seconds,
+        )
