@@ -17,14 +17,14 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
-    """The `sine` parser; only the command named in `argv` gets its full options (building all
-    of them would import torch and Open3D just to print `sine --help`)."""
+    """The `sine` parser. Each command module has NAME, HELP, DESCRIPTION, add_arguments(parser)
+    and run(args); only the command named in `argv` gets its options (they come from library
+    configs that import torch and Open3D, which `sine --help` does not need)."""
     from edit import commands as edit_commands
     from recon import commands as recon_commands
 
     args = sys.argv[1:] if argv is None else argv
     selected = next((a for a in args if not a.startswith("-")), None)
-
     parser = argparse.ArgumentParser(
         prog="sine",
         description=(
@@ -33,8 +33,18 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
         ),
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    recon_commands.register(sub, selected)
-    edit_commands.register(sub, selected)
+    for module in recon_commands.MODULES + edit_commands.MODULES:
+        if module.NAME != selected:
+            sub.add_parser(module.NAME, help=module.HELP)
+            continue
+        command = sub.add_parser(
+            module.NAME,
+            help=module.HELP,
+            description=module.DESCRIPTION,
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
+        module.add_arguments(command)
+        command.set_defaults(func=module.run)
     return parser
 
 

@@ -116,19 +116,13 @@ def run_demo(cfg: DemoConfig) -> dict:
     return summary
 
 
+DESCRIPTION = __doc__
 NAME = "demo"
 HELP = "run the whole pipeline on the built-in procedural object"
 
 
-def add_parser(sub) -> None:
-    parser = sub.add_parser(
-        NAME,
-        help=HELP,
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_options(parser, DemoConfig)
-    parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -270,15 +270,9 @@ NAME = "masks"
 HELP = "semantic masks of a painted part in every view (DINO feature field + K-means)"
 
 
-def add_parser(sub) -> argparse.ArgumentParser:
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     from edit.semantic_masks import SemanticMaskConfig
 
-    parser = sub.add_parser(
-        NAME,
-        help=HELP,
-        description=DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
     parser.add_argument("run", type=Path, help="run directory with a feature field (sine features)")
     parser.add_argument(
         "--view", required=True, help="editing view: index into cameras.json or image name"
@@ -293,8 +287,6 @@ def add_parser(sub) -> argparse.ArgumentParser:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_options(parser, SemanticMaskConfig)
     add_options(parser, MasksConfig)
-    parser.set_defaults(func=run)
-    return parser
 
 
 def run(args: argparse.Namespace) -> int:

@@ -20,15 +20,9 @@ NAME = "features"
 HELP = "distil DINO features into a feature field (RUN/features/)"
 
 
-def add_parser(sub) -> argparse.ArgumentParser:
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     from recon.features import FeaturesConfig
 
-    parser = sub.add_parser(
-        NAME,
-        help=HELP,
-        description=DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
     parser.add_argument("run", type=Path, help="run directory with a fitted template")
     parser.add_argument(
         "--force", action="store_true", help="ignore existing checkpoints and start over"
@@ -37,8 +31,6 @@ def add_parser(sub) -> argparse.ArgumentParser:
         "--quiet", action="store_true", help="no progress bar, only the summary line"
     )
     add_options(parser, FeaturesConfig)
-    parser.set_defaults(func=run)
-    return parser
 
 
 def run(args: argparse.Namespace) -> int:

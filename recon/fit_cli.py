@@ -19,15 +19,9 @@ NAME = "fit"
 HELP = "fit the template radiance field (RUN/template/)"
 
 
-def add_parser(sub) -> argparse.ArgumentParser:
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     from recon.fit import FitConfig
 
-    parser = sub.add_parser(
-        NAME,
-        help=HELP,
-        description=DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
     parser.add_argument(
         "run", type=Path, help="run directory (with cameras.json and proxy_mesh.ply)"
     )
@@ -38,8 +32,6 @@ def add_parser(sub) -> argparse.ArgumentParser:
         "--quiet", action="store_true", help="no progress bar, only the summary line"
     )
     add_options(parser, FitConfig)
-    parser.set_defaults(func=run)
-    return parser
 
 
 def run(args: argparse.Namespace) -> int:

@@ -9,30 +9,25 @@ from recon.ingest import IngestConfig, ingest_capture
 from recon.rundir import RunDir
 from render.configs import add_options, from_args
 
+DESCRIPTION = """\
+Reads a capture into a run directory: working images (undistorted, resized to --width),
+captures.json, and cameras.json / masks / depth when the capture carries them. Formats: a folder
+of images (or its images/ subfolder), a video file, a NeRF/nerfstudio transforms.json, a COLMAP
+model (sparse/0 + images/), a Middlebury ring (*_par.txt), a NeuS/IDR folder
+(cameras_sphere.npz), or images with per-image 3x4 projection matrices (<stem>_P.txt or
+<stem>.P). Running it again with the same capture and options does nothing (use --force).
+"""
+
 NAME = "ingest"
 HELP = "read a capture (images, video, transforms.json, COLMAP, ...) into a run directory"
 
 
-def add_parser(sub) -> None:
-    parser = sub.add_parser(
-        NAME,
-        help=HELP,
-        description=(
-            "Reads a capture into a run directory: working images (undistorted, resized to "
-            "--width), captures.json, and cameras.json / masks / depth when the capture carries "
-            "them. Formats: a folder of images (or its images/ subfolder), a video file, a "
-            "NeRF/nerfstudio transforms.json, a COLMAP model (sparse/0 + images/), a Middlebury "
-            "ring (*_par.txt), a NeuS/IDR folder (cameras_sphere.npz), or images with per-image "
-            "3x4 projection matrices (<stem>_P.txt or <stem>.P). Running it again with the same "
-            "capture and options does nothing (use --force)."
-        ),
-    )
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("capture", type=Path, metavar="CAPTURE", help="the capture to read")
     parser.add_argument(
         "--out", type=Path, required=True, metavar="RUN", help="run directory to write"
     )
     add_options(parser, IngestConfig)
-    parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:

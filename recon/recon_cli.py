@@ -8,25 +8,21 @@ from pathlib import Path
 from recon.rundir import RunDir
 from render.configs import add_options, from_args
 
+DESCRIPTION = """\
+Turntable-aware reconstruction as idempotent stages (ingest -> masks -> poses -> normalize ->
+depth -> proxy_mesh -> report). Finished stages are skipped; --force redoes them. Writes
+cameras.json, masks/, depth/, proxy_mesh.ply, recon_report.json and recon_contact_sheet.png into
+the run directory.
+"""
+
 NAME = "recon"
 HELP = "reconstruct a capture: masks, poses, normalisation, depth, proxy mesh, report"
 
 
-def add_parser(sub) -> None:
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     from recon.ingest import IngestConfig
     from recon.pipeline import ReconConfig
 
-    parser = sub.add_parser(
-        NAME,
-        help=HELP,
-        description=(
-            "Turntable-aware reconstruction as idempotent stages (ingest -> masks -> poses -> "
-            "normalize -> depth -> proxy_mesh -> report). Finished stages are skipped; --force "
-            "redoes them. Writes cameras.json, masks/, depth/, proxy_mesh.ply, recon_report.json "
-            "and recon_contact_sheet.png into the run directory."
-        ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
     parser.add_argument(
         "capture",
         type=Path,
@@ -36,7 +32,6 @@ def add_parser(sub) -> None:
     parser.add_argument("--out", type=Path, required=True, help="run directory to write")
     add_options(parser, IngestConfig)
     add_options(parser, ReconConfig)
-    parser.set_defaults(func=run)
 
 
 def run(args) -> int:

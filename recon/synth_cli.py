@@ -21,21 +21,13 @@ NAME = "synth"
 HELP = "render a synthetic turntable with ground truth (images, masks, depth, parts, edits)"
 
 
-def add_parser(sub) -> argparse.ArgumentParser:
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     from recon.synth import SynthConfig
 
-    parser = sub.add_parser(
-        NAME,
-        help=HELP,
-        description=DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
     add_options(parser, SynthConfig)
     parser.add_argument(
         "--quiet", action="store_true", help="no progress bars, only the final summary line"
     )
-    parser.set_defaults(func=run)
-    return parser
 
 
 def run(args: argparse.Namespace) -> int:

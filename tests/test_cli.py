@@ -26,6 +26,9 @@ def test_every_option_of_every_command_has_help(name):
     assert options, name  # the full parser, not the one-line entry
     for action in options:
         assert action.help, (name, action.dest)
+    # the formatter adds no defaults of its own (add_options already writes each one once)
+    written = sum(a.help.count("(default:") for a in sub._actions if a.help)
+    assert sub.format_help().count("(default:") == written
 
 
 def test_top_level_help_lists_every_command_without_importing_torch():
