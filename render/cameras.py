@@ -492,10 +492,7 @@ class CameraSet:
         return {
             "convention": "opencv",
             "up": [float(x) for x in self.up],
-            "normalization": {
-                "scale": float(self.scale),
-                "center": [float(x) for x in self.center],
-            },
+            "normalization": self._normalization_dict(),
             **self.extra,
             "frames": [c.to_dict() for c in self.frames],
         }
