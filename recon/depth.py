@@ -6,8 +6,8 @@ which measured better than the hull alone: bench/RESULTS.md, Reconstruction):
 - "dataset": every view already has depth from the capture (copied by ingest; rescaled into the
   run frame when the poses/normalisation changed units) -> kept as it is.
 - "visual_hull": the visual hull is carved from all masks + cameras at `resolution` voxels
-  across, meshed by marching cubes and ray cast into every view (Open3D), depth kept inside the
-  view's mask. It is exact on the silhouette and an outer bound elsewhere: it misses
+  across, meshed by marching cubes and ray cast into every view (render.raycast), depth kept
+  inside the view's mask. It is exact on the silhouette and an outer bound elsewhere: it misses
   concavities that no silhouette reveals.
 - "visual_hull+stereo": the hull depth, replaced per pixel by two-view stereo (recon/stereo.py:
   rectified StereoSGBM with the nearest neighbour on each side, left-right checked, the two
@@ -25,30 +25,12 @@ from tqdm import tqdm
 from recon.stereo import StereoParams, stereo_depth
 from recon.visual_hull import carve, hull_bounds, hull_mesh
 from render.cameras import Camera
+from render.raycast import MeshRaycaster
 
 
 def raycast_depth(vertices: np.ndarray, faces: np.ndarray, cam: Camera) -> np.ndarray:
     """Camera-z depth [H, W] of a triangle mesh seen by `cam` (0 where no hit)."""
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(np.asarray(vertices, np.float32)),
-        o3d.core.Tensor(np.asarray(faces, np.uint32)),
-    )
-    return _cast(scene, cam)
-
-
-def _cast(scene, cam: Camera) -> np.ndarray:
-    import open3d as o3d
-
-    origins, dirs = cam.rays()  # [H*W, 3] each
-    rays = o3d.core.Tensor(np.concatenate([origins, dirs], 1).astype(np.float32))
-    t = scene.cast_rays(rays)["t_hit"].numpy()  # [H*W], inf = miss
-    forward = cam.camera_to_world[:3, 2].astype(np.float32)
-    z = t * (dirs @ forward)
-    z[~np.isfinite(z)] = 0.0
-    return z.reshape(cam.height, cam.width).astype(np.float32)
+    return MeshRaycaster((vertices, faces)).depth(cam)
 
 
 def visual_hull_mesh(
@@ -64,14 +46,8 @@ def visual_hull_mesh(
 
 def raycast_views(vertices: np.ndarray, faces: np.ndarray, cameras: list[Camera]):
     """Camera-z depth [H, W] of the mesh in every camera (0 = no hit)."""
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(np.asarray(vertices, np.float32)),
-        o3d.core.Tensor(np.asarray(faces, np.uint32)),
-    )
-    return [_cast(scene, cam) for cam in cameras]
+    caster = MeshRaycaster((vertices, faces))
+    return [caster.depth(cam) for cam in cameras]
 
 
 def visual_hull_depth(

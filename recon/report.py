@@ -13,26 +13,17 @@ from tqdm import tqdm
 
 from recon.rundir import RunDir
 from render.io import read_image, read_mask, write_image, write_json
+from render.raycast import MeshRaycaster
 
 STAGE_KEYS_SKIP = ("done", "seconds", "auto")
 
 
 def proxy_silhouettes(run: RunDir, cameras) -> list[np.ndarray]:
-    """Proxy mesh silhouettes [H, W] bool, one per camera (Open3D ray casting)."""
+    """Proxy mesh silhouettes [H, W] bool, one per camera (render.raycast)."""
     import open3d as o3d
 
-    mesh = o3d.t.io.read_triangle_mesh(str(run.proxy_mesh))
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        mesh.vertex.positions.to(o3d.core.float32), mesh.triangle.indices.to(o3d.core.uint32)
-    )
-    out = []
-    for cam in cameras:
-        origins, dirs = cam.rays()
-        rays = o3d.core.Tensor(np.concatenate([origins, dirs], 1))
-        hit = np.isfinite(scene.cast_rays(rays)["t_hit"].numpy())
-        out.append(hit.reshape(cam.height, cam.width))
-    return out
+    caster = MeshRaycaster(o3d.t.io.read_triangle_mesh(str(run.proxy_mesh)))
+    return [caster.cast_camera(cam).hit.reshape(cam.height, cam.width) for cam in cameras]
 
 
 def contact_sheet(images, masks, silhouettes, columns: int = 6, width: int = 200) -> np.ndarray:

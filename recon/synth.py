@@ -2,9 +2,9 @@
 
 A textured mesh (OBJ/GLB/GLTF with a texture image, or a procedural object from
 `recon.procedural`) is normalised to run units (centred, bounding-sphere radius ~0.8, up = +z) and
-ray cast with Open3D from a ring of cameras looking at the origin. Shading is Lambertian + ambient
-under a light fixed in the world, so the object's appearance is the same from every view (what a
-radiance field can reproduce). Each view gives RGB, mask, camera-z depth and part labels.
+ray cast (render.raycast) from a ring of cameras looking at the origin. Shading is Lambertian +
+ambient under a light fixed in the world, so the object's appearance is the same from every view
+(what a radiance field can reproduce). Each view gives RGB, mask, camera-z depth and part labels.
 
 Known 3D edits of the same mesh (a smooth stretch of the part above a plane, a recoloured part or
 a new texture image) rendered from the same cameras are the ground truth of an edit.
@@ -33,6 +33,7 @@ from render.io import (
     write_label_map,
     write_mask,
 )
+from render.raycast import MeshRaycaster
 
 OBJECT_RADIUS = 0.8  # bounding-sphere radius of the normalised mesh, run units
 DEFAULT_LIGHTS = (  # (direction towards the light, intensity), fixed in the world
@@ -531,17 +532,6 @@ def ring_cameras(
 
 
 # ---- rendering ----------------------------------------------------------------------------
-def _scene(mesh: MeshData):
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(mesh.vertices.astype(np.float32)),
-        o3d.core.Tensor(mesh.faces.astype(np.uint32)),
-    )
-    return scene
-
-
 def _camera_rays(cam: Camera, cache: dict) -> tuple[np.ndarray, np.ndarray]:
     """Rays [H*W, 6] (origin, unit direction; float32) through the pixel centres of `cam`, and
     camera z per unit distance [H*W]. Same maths as Camera.rays, with the camera-frame directions
@@ -570,10 +560,9 @@ def render_views(
 ) -> list[dict]:
     """Ray casts `mesh` from each camera -> per view dict(rgb [H,W,3] float32, mask [H,W] bool,
     depth [H,W] float32 camera z (0 = background), labels [H,W] int part ids (0 = background))."""
-    import open3d as o3d
     from tqdm import tqdm
 
-    scene = _scene(mesh)
+    caster = MeshRaycaster((mesh.vertices, mesh.faces))
     face_n, vert_n = mesh.normals()
     light_dirs = np.array([np.asarray(d) / np.linalg.norm(d) for d, _ in lights], np.float32)
     light_power = np.array([p for _, p in lights], np.float32)
@@ -582,11 +571,10 @@ def render_views(
     for cam in tqdm(cameras, desc="render", unit="view", disable=not progress):
         rays, z_per_t = _camera_rays(cam, cache)
         dirs = rays[:, 3:]
-        hit = scene.cast_rays(o3d.core.Tensor(rays))
-        t = hit["t_hit"].numpy()
-        mask = np.isfinite(t)
-        fid = hit["primitive_ids"].numpy()[mask].astype(np.int64)
-        uv = hit["primitive_uvs"].numpy()[mask].astype(np.float64)
+        hits = caster.cast(rays[:, :3], dirs)
+        t, mask = hits.t, hits.hit
+        fid = hits.triangle[mask]
+        uv = hits.uv[mask].astype(np.float64)
         bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)  # [N, 3]
         rest = mesh.rest_points(fid, bary)
         labels = mesh.labels_at(fid, rest)

@@ -95,7 +95,7 @@ class MultiHits:
         )
 
 
-def _rays_numpy(origins, dirs) -> tuple[np.ndarray, np.ndarray]:
+def rays_numpy(origins, dirs) -> tuple[np.ndarray, np.ndarray]:
     """origins, dirs (numpy or torch, [R, 3]) -> contiguous float32 numpy arrays."""
     out = []
     for x in (origins, dirs):
@@ -151,7 +151,7 @@ class MeshRaycaster:
     # ---- first hit ------------------------------------------------------------------------
     def cast(self, origins, dirs) -> MeshHits:
         """Rays origins [R, 3], dirs [R, 3] (numpy or torch) -> first hits."""
-        o, d = _rays_numpy(origins, dirs)
+        o, d = rays_numpy(origins, dirs)
         t, tri, uv = self._first(o, d)
         normal = np.zeros((len(t), 3), np.float32)
         normal[tri >= 0] = self._normals[tri[tri >= 0]]
@@ -210,7 +210,7 @@ class MeshRaycaster:
         ray count once); Open3D lists every intersection, and hits closer than `min_gap` to the
         previous one are dropped the same way.
         """
-        o, d = _rays_numpy(origins, dirs)
+        o, d = rays_numpy(origins, dirs)
         r, k = len(o), int(max_hits)
         t_out = np.full((r, k), np.inf, np.float32)
         tri_out = np.full((r, k), -1, np.int64)

@@ -1,6 +1,6 @@
 """Where to sample along rays: proxy-guided band sampling (embree) and the uniform baseline.
 
-- `ProxyRaycaster`: Open3D `RaycastingScene` (Embree) over the proxy mesh and over a copy inflated
+- `ProxyRaycaster`: `render.raycast.MeshRaycaster` over the proxy mesh and over a copy inflated
   by `d` along the vertex normals (so silhouettes are covered). `cast` gives per ray the first
   hit on both, and the ray's interval inside the bounding sphere. `update_vertices` rebuilds both
   scenes from warped vertices (milliseconds), for the edited space.
@@ -19,8 +19,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 import torch
+
+from render.raycast import MeshRaycaster, mesh_arrays, rays_numpy
 
 
 @dataclass
@@ -58,19 +59,6 @@ def sphere_interval(
     return near, far, hit & (far > near)
 
 
-def _mesh_arrays(mesh) -> tuple[np.ndarray, np.ndarray]:
-    """Open3D legacy / tensor mesh, trimesh, or (vertices, triangles) -> float32, uint32 arrays."""
-    if isinstance(mesh, tuple):
-        v, f = mesh
-    elif isinstance(mesh, o3d.geometry.TriangleMesh):
-        v, f = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
-    elif isinstance(mesh, o3d.t.geometry.TriangleMesh):
-        v, f = mesh.vertex.positions.numpy(), mesh.triangle.indices.numpy()
-    else:  # trimesh
-        v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    return np.ascontiguousarray(v, np.float32), np.ascontiguousarray(f, np.uint32)
-
-
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Area-weighted vertex normals [V, 3], oriented outwards (by the sign of the volume)."""
     v = vertices.astype(np.float64)
@@ -85,34 +73,29 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 
 class ProxyRaycaster:
-    """Embree ray casting against a proxy mesh and its copy inflated by `inflate` (run units)."""
+    """Ray casting against a proxy mesh and its copy inflated by `inflate` (run units)."""
 
     def __init__(self, mesh, inflate: float = 0.04, radius: float = 1.0):
         self.inflate = float(inflate)
         self.radius = float(radius)
-        vertices, self.triangles = _mesh_arrays(mesh)
+        vertices, self.triangles = mesh_arrays(mesh)
         self.update_vertices(vertices)
 
     def update_vertices(self, vertices: np.ndarray) -> None:
         """Rebuilds both scenes from (warped) vertices [V, 3] with the same triangles."""
         self.vertices = np.ascontiguousarray(vertices, np.float32)
-        tri = o3d.core.Tensor(self.triangles)
-        self._scene = o3d.t.geometry.RaycastingScene()
-        self._scene.add_triangles(o3d.core.Tensor(self.vertices), tri)
+        self._scene = MeshRaycaster((self.vertices, self.triangles))
         self._inflated = None
         if self.inflate > 0:
-            normals = vertex_normals(self.vertices, self.triangles)
-            inflated = self.vertices + self.inflate * normals
-            self._inflated = o3d.t.geometry.RaycastingScene()
-            self._inflated.add_triangles(o3d.core.Tensor(inflated), tri)
+            inflated = self.vertices + self.inflate * vertex_normals(self.vertices, self.triangles)
+            self._inflated = MeshRaycaster((inflated, self.triangles))
 
     def cast(self, origins: torch.Tensor, dirs: torch.Tensor) -> RayHits:
         """origins [R, 3], unit dirs [R, 3] -> RayHits (on the rays' device)."""
-        rays = torch.cat([origins, dirs], dim=-1).detach().float().cpu().numpy()  # [R, 6]
-        rays = o3d.core.Tensor(np.ascontiguousarray(rays))
-        t_hit = torch.from_numpy(self._scene.cast_rays(rays)["t_hit"].numpy())
+        o, d = rays_numpy(origins, dirs)
+        t_hit = torch.from_numpy(self._scene.cast(o, d).t)
         if self._inflated is not None:
-            t_inf = torch.from_numpy(self._inflated.cast_rays(rays)["t_hit"].numpy())
+            t_inf = torch.from_numpy(self._inflated.cast(o, d).t)
         else:
             t_inf = t_hit.clone()
         device = origins.device
