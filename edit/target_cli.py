@@ -1,0 +1,287 @@
+"""`sine target RUN --view K --out target.png OPERATION`: an editing target without a 2D editor.
+
+Starts from the view's rendering or capture (edit/snapshot_cli.py), applies exactly one 2D
+operation of edit/targets.py and writes the target as RGBA (alpha = the edited silhouette) plus a
+before/after picture.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from render.configs import add_options, from_args
+from render.errors import SineError
+
+DESCRIPTION = """\
+Makes an editing target from view --view of RUN with exactly one 2D operation:
+
+  --warp "x0,y0>x1,y1;..."           drag handle points (thin-plate-spline warp of the object's
+                                     pixels and alpha; the image border stays put, and so do
+                                     the --anchor "x,y;..." points)
+  --region painted.png --scale S     scale the painted part about its centre (--center "x,y")
+  --stretch-axis x|y --factor F      stretch the object along an image axis about its centre
+                                     (--about C: the column/row that stays put; --region: only
+                                     the painted part)
+  --recolor --region painted.png --hue DEG [--saturation S]
+                                     rotate the hue of the painted part (S multiplies saturation)
+  --paint painted.png --color R,G,B  paint the part in a colour (0..255), shading kept (--flat:
+                                     one flat colour)
+
+Coordinates are pixels as an image editor shows them: x = column, y = row, from 0 at the top
+left. Painted regions are PNGs of the run's working size (white = painted; make one over
+`sine snapshot`'s picture); texture operations touch only object pixels (alpha >= 0.5). Writes
+OUT (RGBA: RGB over the background, alpha = edited silhouette) and OUT_before_after.png.
+"""
+
+EXAMPLES = {
+    "warp": '--warp "120,40>150,30;60,200>60,220"',
+    "anchor": '--anchor "100,180;140,180"',
+    "center": '--center "128,96"',
+    "color": "--color 200,30,30",
+}
+
+
+# ---- parsing ------------------------------------------------------------------------------
+def _number(text: str, what: str, example: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise SineError(
+            f"cannot read {text.strip()!r} in {what} as a number; e.g. {example}"
+        ) from None
+    if not np.isfinite(value):
+        raise SineError(f"{what} has a non-finite number {text!r}; e.g. {example}")
+    return value
+
+
+def parse_point(text: str, what: str, example: str) -> tuple[float, float]:
+    """'x,y' -> (x, y)."""
+    parts = text.split(",")
+    if len(parts) != 2:
+        raise SineError(f"{what}: {text.strip()!r} is not a point 'x,y'; e.g. {example}")
+    return _number(parts[0], what, example), _number(parts[1], what, example)
+
+
+def parse_points(text: str, what: str = "--anchor") -> list[tuple[float, float]]:
+    """'x,y;x,y;...' -> [(x, y), ...]."""
+    example = EXAMPLES["anchor"] if what == "--anchor" else EXAMPLES["center"]
+    items = [t for t in text.split(";") if t.strip()]
+    if not items:
+        raise SineError(f"{what} is empty; e.g. {example}")
+    return [parse_point(t, what, example) for t in items]
+
+
+def parse_warp(text: str) -> list[tuple[tuple[float, float], tuple[float, float]]]:
+    """'x0,y0>x1,y1;...' -> [((x0, y0), (x1, y1)), ...]."""
+    example = EXAMPLES["warp"]
+    items = [t for t in text.split(";") if t.strip()]
+    if not items:
+        raise SineError(f"--warp is empty; e.g. {example}")
+    handles = []
+    for item in items:
+        ends = item.split(">")
+        if len(ends) != 2:
+            raise SineError(
+                f"--warp: {item.strip()!r} is not a handle 'x0,y0>x1,y1' (from > to); "
+                f"e.g. {example}"
+            )
+        handles.append(tuple(parse_point(e, "--warp", example) for e in ends))
+    return handles
+
+
+def parse_color(text: str) -> np.ndarray:
+    """'R,G,B' with 0..255 values -> RGB [3] in [0, 1]."""
+    parts = text.split(",")
+    if len(parts) != 3:
+        raise SineError(f"--color {text!r} is not 'R,G,B'; e.g. {EXAMPLES['color']}")
+    rgb = np.array([_number(p, "--color", EXAMPLES["color"]) for p in parts], np.float32)
+    if np.any(rgb < 0) or np.any(rgb > 255):
+        raise SineError(f"--color values are 0..255, got {text!r}; e.g. {EXAMPLES['color']}")
+    return rgb / 255.0
+
+
+def load_region(path: Path, width: int, height: int, what: str = "--region") -> np.ndarray:
+    """A painted-region PNG as bool [H, W], checked against the view's working size."""
+    from render.io import read_mask
+
+    path = Path(path)
+    if not path.is_file():
+        raise SineError(f"{what} image {path} does not exist")
+    region = read_mask(path)
+    if region.shape != (height, width):
+        raise SineError(
+            f"{what} {path} is {region.shape[1]}x{region.shape[0]} but the view is "
+            f"{width}x{height}: paint over the view's snapshot (`sine snapshot`)"
+        )
+    if not region.any():
+        raise SineError(f"{what} {path} is empty: paint the part in white")
+    return region
+
+
+# ---- the operation ------------------------------------------------------------------------
+OPERATIONS = ("warp", "scale", "stretch_axis", "recolor", "paint")
+# option -> the operation it belongs to (given with another operation, it is an error)
+OWNED = {
+    "anchor": "warp",
+    "center": "scale",
+    "factor": "stretch_axis",
+    "about": "stretch_axis",
+    "hue": "recolor",
+    "saturation": "recolor",
+    "color": "paint",
+    "flat": "paint",
+}
+FLAGS = {"stretch_axis": "--stretch-axis", "scale": "--region ... --scale"}
+
+
+def _given(value) -> bool:
+    return value is not None and value is not False
+
+
+def chosen_operation(args: argparse.Namespace) -> str:
+    """The one operation named on the command line (SineError for none, several or stray options)."""
+    given = [op for op in OPERATIONS if _given(getattr(args, op))]
+    if len(given) != 1:
+        names = ", ".join("--" + op.replace("_", "-") for op in given)
+        raise SineError(
+            ("several operations given (" + names + "); " if given else "no operation given; ")
+            + f"choose exactly one: {EXAMPLES['warp']}, --region painted.png --scale 1.3, "
+            "--stretch-axis x --factor 1.2, --recolor --region painted.png --hue 120, "
+            f"--paint painted.png {EXAMPLES['color']}"
+        )
+    op = given[0]
+    for name, owner in OWNED.items():
+        if _given(getattr(args, name)) and owner != op:
+            flag = FLAGS.get(owner, "--" + owner)
+            raise SineError(f"--{name} belongs to {flag}, not to --{op.replace('_', '-')}")
+    if args.region is not None and op in ("warp", "paint"):
+        raise SineError(f"--region is not used by --{op} (paint: the region is --paint's PNG)")
+    return op
+
+
+def make_target(args: argparse.Namespace, view) -> tuple[np.ndarray, np.ndarray, str]:
+    """Applies the operation of `args` to the view -> (image, alpha, one-line summary)."""
+    from edit import targets
+
+    op = chosen_operation(args)
+    h, w = view.alpha.shape
+    image, alpha, bg = view.image, view.alpha, view.background
+    region = load_region(args.region, w, h) if args.region is not None else None
+    if op == "warp":
+        handles = parse_warp(args.warp)
+        anchors = parse_points(args.anchor) if args.anchor else []
+        out, a = targets.warp_target(image, alpha, handles, anchors, background=bg)
+        return out, a, f"warp ({len(handles)} handles, {len(anchors)} anchors)"
+    if op == "scale":
+        if region is None:
+            raise SineError("--scale needs --region painted.png (the part to scale)")
+        center = parse_point(args.center, "--center", EXAMPLES["center"]) if args.center else None
+        out, a = targets.scale_region(image, alpha, region, args.scale, center, background=bg)
+        return out, a, f"scale x{args.scale:g} of the painted part"
+    if op == "stretch_axis":
+        if args.factor is None:
+            raise SineError(f"--stretch-axis {args.stretch_axis} needs --factor F (e.g. 1.2)")
+        out, a = targets.stretch_axis(
+            image, alpha, args.stretch_axis, args.factor, args.about, region, background=bg
+        )
+        where = "the painted part" if region is not None else "the object"
+        return out, a, f"stretch {where} x{args.factor:g} along {args.stretch_axis}"
+    if op == "recolor":
+        if region is None:
+            raise SineError("--recolor needs --region painted.png (the part to recolour)")
+        if args.hue is None and args.saturation is None:
+            raise SineError("--recolor needs --hue DEG (e.g. --hue 120) and/or --saturation S")
+        part = region & (alpha >= 0.5)
+        out = targets.recolor_region(image, part, args.hue or 0.0, args.saturation)
+        return out, alpha, f"recolor hue {args.hue or 0:+g} deg of {int(part.sum())} pixels"
+    paint = load_region(args.paint, w, h, "--paint")
+    if args.color is None:
+        raise SineError(f"--paint needs --color R,G,B; e.g. {EXAMPLES['color']}")
+    part = paint & (alpha >= 0.5)
+    out = targets.paint_region(image, part, parse_color(args.color), shading=not args.flat)
+    return out, alpha, f"paint {int(part.sum())} pixels {args.color}"
+
+
+def before_after_path(out: Path) -> Path:
+    return Path(out).with_name(Path(out).stem + "_before_after.png")
+
+
+NAME = "target"
+HELP = "make an editing target from one view by a 2D operation (warp, scale, stretch, recolour)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from edit.snapshot_cli import ViewSourceConfig
+
+    parser.add_argument("run", type=Path, help="run directory (with cameras.json)")
+    parser.add_argument(
+        "--view", required=True, help="view index 0..N-1 in cameras.json order, or an image name"
+    )
+    parser.add_argument("--out", type=Path, required=True, help="target PNG to write (RGBA)")
+    ops = parser.add_argument_group("operation (exactly one)")
+    ops.add_argument(
+        "--warp", metavar="'x0,y0>x1,y1;...'", help="drag handle points from x0,y0 to x1,y1"
+    )
+    ops.add_argument(
+        "--anchor",
+        metavar="'x,y;...'",
+        help="--warp: points that stay put (besides the image corners and edge midpoints)",
+    )
+    ops.add_argument(
+        "--region",
+        type=Path,
+        help="painted part (PNG of the working size, white = painted) for --scale and "
+        "--recolor; with --stretch-axis, stretch only this part",
+    )
+    ops.add_argument("--scale", type=float, help="scale the --region part by this factor")
+    ops.add_argument(
+        "--center", metavar="'x,y'", help="--scale: fixed point (default: the part's centre)"
+    )
+    ops.add_argument("--stretch-axis", choices=["x", "y"], help="stretch along this image axis")
+    ops.add_argument("--factor", type=float, help="--stretch-axis: stretch factor (e.g. 1.2)")
+    ops.add_argument(
+        "--about",
+        type=float,
+        help="--stretch-axis: the column (x) or row (y) that stays put (default: the centre)",
+    )
+    ops.add_argument("--recolor", action="store_true", help="rotate the hue of the --region part")
+    ops.add_argument("--hue", type=float, help="--recolor: hue rotation in degrees (e.g. 120)")
+    ops.add_argument(
+        "--saturation", type=float, help="--recolor: multiply the saturation by S (e.g. 1.5)"
+    )
+    ops.add_argument("--paint", type=Path, help="painted part (PNG) to fill with --color")
+    ops.add_argument("--color", metavar="R,G,B", help="--paint: colour, 0..255 per channel")
+    ops.add_argument(
+        "--flat", action="store_true", help="--paint: one flat colour instead of keeping shading"
+    )
+    add_options(parser, ViewSourceConfig)
+
+
+def run(args: argparse.Namespace) -> int:
+    from edit.snapshot_cli import ViewSourceConfig, load_view
+    from edit.targets import before_after, write_rgba
+    from render.io import write_image
+
+    if args.out.suffix.lower() != ".png":
+        raise SineError(f"--out {args.out} must be a .png (the target keeps its alpha)")
+    chosen_operation(args)  # option errors before the (slow) rendering
+    view = load_view(args.run, args.view, from_args(ViewSourceConfig, args))
+    if view.note:
+        print(f"target: {view.note}")
+    image, alpha, summary = make_target(args, view)
+    write_rgba(args.out, image, alpha)
+    side = before_after_path(args.out)
+    write_image(side, before_after(view.image, image))
+    changed = float(np.abs(image - view.image).max()) * 255 >= 0.5
+    changed = changed or float(np.abs(alpha - view.alpha).max()) * 255 >= 0.5
+    print(
+        f"target: {summary} on view {view.index} ({view.camera.name}, {view.source}); object "
+        f"{int((view.alpha >= 0.5).sum())} -> {int((alpha >= 0.5).sum())} pixels"
+        + ("" if changed else " (warning: nothing changed)")
+    )
+    print(f"target: {args.out}")
+    print(f"target: before/after {side}")
+    return 0
