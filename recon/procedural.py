@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from recon.synth import MeshData
+from recon.mesh_data import MeshData
 from render.errors import SineError
 
 

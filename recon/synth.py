@@ -14,15 +14,15 @@ Planes are given as (nx, ny, nz, D): the points x with n.x = D (n normalised); "
 
 from __future__ import annotations
 
-import dataclasses
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
+from recon import procedural
+from recon.mesh_data import MeshData, plane_side
+from recon.mesh_data import sample_texture as sample_texture  # re-exported
 from render.cameras import Camera, CameraSet, cameras_to_transforms, look_at, save_cameras
 from render.configs import option, to_dict
 from render.errors import SineError
@@ -44,155 +44,7 @@ UP_AXES = ("auto", "z", "y", "x", "-z", "-y", "-x")
 EDIT_KINDS = ("geometric", "texture")
 
 
-# ---- the mesh to render -------------------------------------------------------------------
-ColorFn = Callable[[np.ndarray, np.ndarray], np.ndarray]  # (rest points [N,3], faces [N]) -> [N,3]
-
-
-@dataclass
-class MeshData:
-    """A triangle mesh with everything the renderer needs to colour and label a hit.
-
-    `vertices` are the positions rendered; `rest_vertices` the positions before any geometric
-    edit: colour (procedural textures) and the plane split of parts are looked up there, so they
-    move with the geometry.
-    """
-
-    vertices: np.ndarray  # [V, 3] float64
-    faces: np.ndarray  # [F, 3] int64
-    part_names: dict[int, str]  # part id -> name (0 = background, never a part)
-    face_parts: np.ndarray  # [F] int part ids (used when part_plane is None)
-    vertex_colors: np.ndarray | None = None  # [V, 3] float32 albedo where no texture/color_fn
-    face_uvs: np.ndarray | None = None  # [F, 3, 2] texture coordinates per face corner
-    face_texture: np.ndarray | None = None  # [F] index into `textures`, -1 = vertex colours
-    textures: list[np.ndarray] = field(default_factory=list)  # float32 RGB [H, W, 3]
-    color_fn: ColorFn | None = None  # procedural albedo, evaluated at rest positions
-    face_smooth: np.ndarray | None = None  # [F] bool: interpolate vertex normals (else flat)
-    part_plane: np.ndarray | None = None  # [4] (n, D): label 1 below, 2 above (rest positions)
-    rest_vertices: np.ndarray | None = None  # [V, 3]; None = `vertices`
-    weld: np.ndarray | None = None  # [V] index of the vertex after merging equal positions
-    recolor: dict | None = None  # texture edit applied to the albedo: {part, hue_shift_deg, color}
-
-    def __post_init__(self):
-        self.vertices = np.asarray(self.vertices, dtype=np.float64).reshape(-1, 3)
-        self.faces = np.asarray(self.faces, dtype=np.int64).reshape(-1, 3)
-        self.face_parts = np.asarray(self.face_parts, dtype=np.int64).reshape(-1)
-        if self.rest_vertices is None:
-            self.rest_vertices = self.vertices.copy()
-        if self.weld is None:
-            _, self.weld = np.unique(self.vertices, axis=0, return_inverse=True)
-            self.weld = self.weld.reshape(-1)
-        if self.face_smooth is None:
-            self.face_smooth = np.ones(len(self.faces), dtype=bool)
-        if self.face_texture is None:
-            self.face_texture = np.full(len(self.faces), -1, dtype=np.int64)
-        if self.vertex_colors is None:
-            self.vertex_colors = np.full((len(self.vertices), 3), 0.7, dtype=np.float32)
-
-    def replace(self, **changes) -> MeshData:
-        return dataclasses.replace(self, **changes)
-
-    # ---- per-hit lookups ------------------------------------------------------------------
-    def rest_points(self, face_ids: np.ndarray, bary: np.ndarray) -> np.ndarray:
-        """Rest-space positions [N, 3] of hits given by faces [N] and barycentrics [N, 3]."""
-        return np.einsum("nk,nkd->nd", bary, self.rest_vertices[self.faces[face_ids]])
-
-    def labels_at(self, face_ids: np.ndarray, rest_points: np.ndarray) -> np.ndarray:
-        """Part id [N] of hits."""
-        if self.part_plane is not None:
-            return np.where(plane_side(rest_points, self.part_plane) > 0, 2, 1).astype(np.int64)
-        return self.face_parts[face_ids]
-
-    def albedo_at(self, face_ids: np.ndarray, bary: np.ndarray, rest_points: np.ndarray):
-        """Surface colour [N, 3] (float32, before shading) of hits, texture edit included."""
-        if self.color_fn is not None:
-            albedo = np.asarray(self.color_fn(rest_points, face_ids), dtype=np.float32)
-        else:
-            corner = self.vertex_colors[self.faces[face_ids]]  # [N, 3, 3]
-            albedo = np.einsum("nk,nkd->nd", bary, corner).astype(np.float32)
-            tex_ids = self.face_texture[face_ids]
-            for t, image in enumerate(self.textures):
-                sel = tex_ids == t
-                if sel.any():
-                    uv = np.einsum("nk,nkd->nd", bary[sel], self.face_uvs[face_ids[sel]])
-                    albedo[sel] = sample_texture(image, uv)
-        return self._recolored(albedo, self.labels_at(face_ids, rest_points))
-
-    # ---- per-vertex values (the exported GT mesh) -----------------------------------------
-    def vertex_faces(self) -> np.ndarray:
-        """One incident face per vertex [V] (0 for unused vertices)."""
-        out = np.zeros(len(self.vertices), dtype=np.int64)
-        out[self.faces.ravel()] = np.repeat(np.arange(len(self.faces)), 3)
-        return out
-
-    def vertex_labels(self) -> np.ndarray:
-        """Part id per vertex [V] (rest positions for the plane split)."""
-        return self.labels_at(self.vertex_faces(), self.rest_vertices)
-
-    def vertex_albedo(self) -> np.ndarray:
-        """Albedo per vertex [V, 3] float32: texture sampled at the vertex's UV, texture edit in."""
-        vf = self.vertex_faces()
-        if self.color_fn is not None:
-            albedo = np.asarray(self.color_fn(self.rest_vertices, vf), dtype=np.float32)
-        else:
-            albedo = self.vertex_colors.astype(np.float32).copy()
-            for t, image in enumerate(self.textures):
-                sel = self.face_texture == t
-                if sel.any():
-                    corner_uv = self.face_uvs[sel].reshape(-1, 2)
-                    albedo[self.faces[sel].ravel()] = sample_texture(image, corner_uv)
-        return self._recolored(albedo, self.vertex_labels())
-
-    def _recolored(self, albedo: np.ndarray, labels: np.ndarray) -> np.ndarray:
-        if not self.recolor:
-            return albedo
-        sel = labels == int(self.recolor["part"])
-        if sel.any():
-            albedo = albedo.copy()
-            albedo[sel] = recolor_albedo(albedo[sel], self.recolor)
-        return albedo
-
-    # ---- geometry -------------------------------------------------------------------------
-    def welded(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Vertices merged by position: (vertices [W, 3], faces [F, 3], first original index [W])."""
-        n = int(self.weld.max()) + 1 if len(self.weld) else 0
-        first = np.full(n, -1, dtype=np.int64)
-        first[self.weld[::-1]] = np.arange(len(self.weld))[::-1]
-        return self.vertices[first], self.weld[self.faces], first
-
-    def normals(self) -> tuple[np.ndarray, np.ndarray]:
-        """Unit face normals [F, 3] and smooth vertex normals [V, 3] (area weighted, welded)."""
-        tri = self.vertices[self.faces]
-        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # [F, 3], |.| = 2 area
-        face_n = cross / np.maximum(np.linalg.norm(cross, axis=1, keepdims=True), 1e-20)
-        wv, wf, _ = self.welded()
-        acc = np.zeros_like(wv)
-        for k in range(3):
-            np.add.at(acc, wf[:, k], cross)
-        acc /= np.maximum(np.linalg.norm(acc, axis=1, keepdims=True), 1e-20)
-        return face_n, acc[self.weld]
-
-    def to_trimesh(self):
-        """The welded mesh with per-vertex albedo colours (uint8), ready for PLY export."""
-        import trimesh
-
-        wv, wf, first = self.welded()
-        colors = self.vertex_albedo()[first]
-        rgba = np.concatenate([colors, np.ones((len(colors), 1), np.float32)], axis=1)
-        return trimesh.Trimesh(
-            wv, wf, vertex_colors=(np.clip(rgba, 0, 1) * 255 + 0.5).astype(np.uint8), process=False
-        )
-
-    def welded_vertex_labels(self) -> np.ndarray:
-        return self.vertex_labels()[self.welded()[2]]
-
-
-def plane_side(points: np.ndarray, plane) -> np.ndarray:
-    """Signed distance [N] of points [N, 3] to the plane (n, D) (n normalised here)."""
-    plane = np.asarray(plane, dtype=np.float64).reshape(4)
-    n = plane[:3] / np.linalg.norm(plane[:3])
-    return np.asarray(points, dtype=np.float64) @ n - plane[3]
-
-
+# ---- planes -------------------------------------------------------------------------------
 def normalised_plane(plane) -> np.ndarray:
     """(n, D) with |n| = 1 describing the same plane."""
     plane = np.asarray(plane, dtype=np.float64).reshape(4)
@@ -200,32 +52,6 @@ def normalised_plane(plane) -> np.ndarray:
     if norm < 1e-12:
         raise SineError("a plane needs a non-zero normal (NX NY NZ D)")
     return plane / norm
-
-
-def sample_texture(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear lookup [N, 3] of texture [H, W, 3] at UVs [N, 2] (v up, repeat wrapping)."""
-    h, w = image.shape[:2]
-    x = np.asarray(uv[:, 0], dtype=np.float64) * w - 0.5
-    y = (1.0 - np.asarray(uv[:, 1], dtype=np.float64)) * h - 0.5
-    x0, y0 = np.floor(x), np.floor(y)
-    fx, fy = (x - x0)[:, None].astype(np.float32), (y - y0)[:, None].astype(np.float32)
-    x0, y0 = x0.astype(np.int64), y0.astype(np.int64)
-    x1, y1 = (x0 + 1) % w, (y0 + 1) % h
-    x0, y0 = x0 % w, y0 % h
-    top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
-    bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
-    return (top * (1 - fy) + bottom * fy).astype(np.float32)
-
-
-def recolor_albedo(albedo: np.ndarray, recolor: dict) -> np.ndarray:
-    """Texture edit of colours [N, 3]: a solid `color`, else a hue rotation by `hue_shift_deg`."""
-    if recolor.get("color") is not None:
-        return np.broadcast_to(np.asarray(recolor["color"], np.float32), albedo.shape).copy()
-    hsv = cv2.cvtColor(np.clip(albedo, 0, 1).astype(np.float32)[None], cv2.COLOR_RGB2HSV)[0]
-    hsv[:, 0] = (hsv[:, 0] + float(recolor.get("hue_shift_deg", 0.0))) % 360.0
-    # Grey surfaces have no hue to rotate: give them some saturation so the edit is visible.
-    hsv[:, 1] = np.maximum(hsv[:, 1], float(recolor.get("min_saturation", 0.0)))
-    return cv2.cvtColor(hsv[None], cv2.COLOR_HSV2RGB)[0]
 
 
 # ---- loading and normalising --------------------------------------------------------------
@@ -742,8 +568,6 @@ def load_source(cfg: SynthConfig) -> tuple[MeshData, Normalisation, dict]:
     """The normalised mesh to render and what the object suggests for edits."""
     hints: dict = {}
     if cfg.procedural is not None:
-        from recon import procedural
-
         obj = procedural.build(cfg.procedural)
         mesh, norm = normalise(obj.mesh, "z")
         if obj.edit_plane is not None:
