@@ -1,8 +1,9 @@
 """`sine snapshot RUN --view K --out view.png`: one view of a run as an RGBA PNG to edit.
 
-The template's rendering of the view (RGB composited over the run's background colour, alpha =
-rendered opacity) or the capture (the run's working image, alpha = its mask), at the run's
-working size (the camera's width x height in cameras.json).
+The template's rendering of the view (alpha = rendered opacity) or the capture (the run's working
+image, alpha = its mask), at the run's working size (the camera's width x height in
+cameras.json). The PNG's RGB is straight colour: composited over the run's background colour it
+is the rendering.
 """
 
 from __future__ import annotations
@@ -18,8 +19,9 @@ from render.errors import SineError
 
 DESCRIPTION = """\
 Writes view --view of RUN as an RGBA PNG for editing in any 2D tool (or with `sine target`):
-the template's rendering (RGB as rendered over the run's background colour, alpha = opacity)
-or the capture (the run's working image, alpha = its mask), at the run's working size. Views are
+the template's rendering (alpha = opacity; composited over the run's background colour the PNG
+is the rendering) or the capture (the run's working image, alpha = its mask), at the run's
+working size. Views are
 numbered 0..N-1 in cameras.json order (an image name works too). --source auto renders when
 RUN/template/field.pt exists (after `sine fit`) and uses the capture otherwise.
 """
@@ -144,7 +146,7 @@ def snapshot(run_dir, view: str | int, out, cfg: ViewSourceConfig | None = None)
     from edit.targets import write_rgba
 
     v = load_view(run_dir, view, cfg)
-    write_rgba(out, v.image, v.alpha)
+    write_rgba(out, v.image, v.alpha, v.background)
     return v
 
 

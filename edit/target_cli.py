@@ -33,7 +33,8 @@ Makes an editing target from view --view of RUN with exactly one 2D operation:
 Coordinates are pixels as an image editor shows them: x = column, y = row, from 0 at the top
 left. Painted regions are PNGs of the run's working size (white = painted; make one over
 `sine snapshot`'s picture); texture operations touch only object pixels (alpha >= 0.5). Writes
-OUT (RGBA: RGB over the background, alpha = edited silhouette) and OUT_before_after.png.
+OUT (RGBA, alpha = the edited silhouette; composited over the background it is the
+edited view) and OUT_before_after.png.
 """
 
 EXAMPLES = {
@@ -272,7 +273,7 @@ def run(args: argparse.Namespace) -> int:
     if view.note:
         print(f"target: {view.note}")
     image, alpha, summary = make_target(args, view)
-    write_rgba(args.out, image, alpha)
+    write_rgba(args.out, image, alpha, view.background)
     side = before_after_path(args.out)
     write_image(side, before_after(view.image, image))
     changed = float(np.abs(image - view.image).max()) * 255 >= 0.5

@@ -302,13 +302,22 @@ def before_after(before: np.ndarray, after: np.ndarray, separator: int = 4) -> n
     return np.concatenate([pad(before), bar, pad(after)], axis=1)
 
 
-def write_rgba(path, image: np.ndarray, alpha: np.ndarray) -> None:
-    """Writes RGB [H, W, 3] and alpha [H, W] in [0, 1] as an 8-bit RGBA PNG, atomically."""
+def write_rgba(path, image: np.ndarray, alpha: np.ndarray, background=None) -> None:
+    """Writes an 8-bit RGBA PNG, atomically, of `image` [H, W, 3] composited over `background`
+    (colour [3] or backdrop [H, W, 3]) with alpha [H, W] in [0, 1]. The PNG holds straight
+    (unassociated) colour, as PNG defines it: composited over the background again it gives
+    `image` back (where alpha is 0 it holds `image` itself). background None: `image` as is."""
     from pathlib import Path
 
     from render.io import write_bytes_atomic
 
-    rgba = np.concatenate([np.asarray(image)[..., :3], np.asarray(alpha)[..., None]], axis=2)
+    image, alpha = _to_float(image, alpha)
+    if background is not None:
+        backdrop = _backdrop(image, alpha, background)
+        a = alpha[..., None]
+        straight = _premultiplied(image, alpha, backdrop) / np.maximum(a, 1e-6)
+        image = np.where(a >= 0.5 / 255, straight, image)
+    rgba = np.concatenate([image[..., :3], alpha[..., None]], axis=2)
     rgba8 = (np.clip(rgba, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     ok, buf = cv2.imencode(".png", cv2.cvtColor(rgba8, cv2.COLOR_RGBA2BGRA))
     if not ok:
