@@ -160,49 +160,67 @@ def chosen_operation(args: argparse.Namespace) -> str:
             raise SineError(f"--{name} belongs to {flag}, not to --{op.replace('_', '-')}")
     if args.region is not None and op in ("warp", "paint"):
         raise SineError(f"--region is not used by --{op} (paint: the region is --paint's PNG)")
+    if op in ("scale", "recolor") and args.region is None:
+        raise SineError(f"--{op} needs --region painted.png (the part to change)")
+    if op == "stretch_axis" and args.factor is None:
+        raise SineError(f"--stretch-axis {args.stretch_axis} needs --factor F (e.g. 1.2)")
+    if op == "recolor" and args.hue is None and args.saturation is None:
+        raise SineError("--recolor needs --hue DEG (e.g. --hue 120) and/or --saturation S")
+    if op == "paint" and args.color is None:
+        raise SineError(f"--paint needs --color R,G,B; e.g. {EXAMPLES['color']}")
+    parsed(args)  # syntax errors now, before any rendering
     return op
 
 
-def make_target(args: argparse.Namespace, view) -> tuple[np.ndarray, np.ndarray, str]:
+def parsed(args: argparse.Namespace) -> dict:
+    """The option strings of `args` parsed (handles, anchors, centre, colour)."""
+    return {
+        "handles": parse_warp(args.warp) if args.warp else [],
+        "anchors": parse_points(args.anchor) if args.anchor else [],
+        "center": parse_point(args.center, "--center", EXAMPLES["center"]) if args.center else None,
+        "color": parse_color(args.color) if args.color else None,
+    }
+
+
+def load_regions(args: argparse.Namespace, width: int, height: int) -> dict:
+    """The painted PNGs of `args` (--region, --paint) as bool [H, W], checked against the size."""
+    return {
+        "region": load_region(args.region, width, height) if args.region else None,
+        "paint": load_region(args.paint, width, height, "--paint") if args.paint else None,
+    }
+
+
+def make_target(args: argparse.Namespace, view, regions: dict | None = None):
     """Applies the operation of `args` to the view -> (image, alpha, one-line summary)."""
     from edit import targets
 
     op = chosen_operation(args)
+    p = parsed(args)
     h, w = view.alpha.shape
-    image, alpha, bg = view.image, view.alpha, view.background
-    region = load_region(args.region, w, h) if args.region is not None else None
+    regions = regions or load_regions(args, w, h)
+    image, alpha, bg, region = view.image, view.alpha, view.background, regions["region"]
     if op == "warp":
-        handles = parse_warp(args.warp)
-        anchors = parse_points(args.anchor) if args.anchor else []
-        out, a = targets.warp_target(image, alpha, handles, anchors, background=bg)
-        return out, a, f"warp ({len(handles)} handles, {len(anchors)} anchors)"
+        out, a = targets.warp_target(image, alpha, p["handles"], p["anchors"], background=bg)
+        return out, a, f"warp ({len(p['handles'])} handles, {len(p['anchors'])} anchors)"
     if op == "scale":
-        if region is None:
-            raise SineError("--scale needs --region painted.png (the part to scale)")
-        center = parse_point(args.center, "--center", EXAMPLES["center"]) if args.center else None
-        out, a = targets.scale_region(image, alpha, region, args.scale, center, background=bg)
+        out, a = targets.scale_region(image, alpha, region, args.scale, p["center"], background=bg)
         return out, a, f"scale x{args.scale:g} of the painted part"
     if op == "stretch_axis":
-        if args.factor is None:
-            raise SineError(f"--stretch-axis {args.stretch_axis} needs --factor F (e.g. 1.2)")
         out, a = targets.stretch_axis(
             image, alpha, args.stretch_axis, args.factor, args.about, region, background=bg
         )
         where = "the painted part" if region is not None else "the object"
         return out, a, f"stretch {where} x{args.factor:g} along {args.stretch_axis}"
+    part = (region if op == "recolor" else regions["paint"]) & (alpha >= 0.5)
+    if not part.any():
+        raise SineError(
+            f"the painted region does not touch the object in view {view.index}: paint over "
+            "the object's pixels (alpha >= 0.5 in `sine snapshot`)"
+        )
     if op == "recolor":
-        if region is None:
-            raise SineError("--recolor needs --region painted.png (the part to recolour)")
-        if args.hue is None and args.saturation is None:
-            raise SineError("--recolor needs --hue DEG (e.g. --hue 120) and/or --saturation S")
-        part = region & (alpha >= 0.5)
         out = targets.recolor_region(image, part, args.hue or 0.0, args.saturation)
         return out, alpha, f"recolor hue {args.hue or 0:+g} deg of {int(part.sum())} pixels"
-    paint = load_region(args.paint, w, h, "--paint")
-    if args.color is None:
-        raise SineError(f"--paint needs --color R,G,B; e.g. {EXAMPLES['color']}")
-    part = paint & (alpha >= 0.5)
-    out = targets.paint_region(image, part, parse_color(args.color), shading=not args.flat)
+    out = targets.paint_region(image, part, p["color"], shading=not args.flat)
     return out, alpha, f"paint {int(part.sum())} pixels {args.color}"
 
 
@@ -262,17 +280,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from edit.snapshot_cli import ViewSourceConfig, load_view
+    from edit.snapshot_cli import ViewSourceConfig, load_view, pick_view
     from edit.targets import before_after, write_rgba
+    from recon.rundir import RunDir
     from render.io import write_image
 
     if args.out.suffix.lower() != ".png":
         raise SineError(f"--out {args.out} must be a .png (the target keeps its alpha)")
     chosen_operation(args)  # option errors before the (slow) rendering
+    _, camera = pick_view(RunDir(args.run).load_cameras().frames, args.view)
+    regions = load_regions(args, camera.width, camera.height)
     view = load_view(args.run, args.view, from_args(ViewSourceConfig, args))
     if view.note:
         print(f"target: {view.note}")
-    image, alpha, summary = make_target(args, view)
+    image, alpha, summary = make_target(args, view, regions)
     write_rgba(args.out, image, alpha, view.background)
     side = before_after_path(args.out)
     write_image(side, before_after(view.image, image))

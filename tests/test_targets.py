@@ -274,7 +274,9 @@ def test_target_warp_on_the_rendering(run_root, tmp_path, capsys):
     x0, x1, y0, y1 = _bbox(before >= 0.5)
     top = (round((x0 + x1) / 2), y0 + 2)  # a point just inside the object's top edge
     warp = f"{top[0]},{top[1]}>{top[0]},{top[1] - 8}"
+    anchor = f"{top[0]},{y1}"  # the bottom stays put
     args = ["target", str(run_root), "--view", "1", "--out", str(out), "--warp", warp]
+    args += ["--anchor", anchor]
     assert main(args + ["--threads", "1"]) == 0
     printed = capsys.readouterr().out
     side = tmp_path / "target_before_after.png"
