@@ -1,8 +1,17 @@
 """`sine` subcommands of the editing side: masks (semantic masks), snapshot and target (a view
-to edit, 2D editing targets) and demo (built by `sine_cli`)."""
+to edit, 2D editing targets), render/export/view/eval (outputs) and demo (built by `sine_cli`)."""
 
 from __future__ import annotations
 
-from edit import demo, masks_cli, snapshot_cli, target_cli
+from edit import (
+    demo,
+    eval_cli,
+    export_cli,
+    masks_cli,
+    render_cli,
+    snapshot_cli,
+    target_cli,
+    view_cli,
+)
 
-MODULES = (masks_cli, snapshot_cli, target_cli, demo)
+MODULES = (masks_cli, snapshot_cli, target_cli, render_cli, export_cli, view_cli, eval_cli, demo)

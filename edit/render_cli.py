@@ -1,0 +1,105 @@
+"""`sine render RUN [--edit NAME] --out DIR`: frames, video and camera path of a run or an edit."""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+from pathlib import Path
+
+from render.configs import add_options, from_args, option
+from render.errors import SineError
+
+NAME = "render"
+HELP = "render an orbit, a camera path or the capture views (PNG frames, MP4)"
+DESCRIPTION = """\
+Renders the fitted template of RUN (or its edit --edit NAME at --strength) along a camera path:
+an orbit around the up axis at the captures' mean elevation and distance (--orbit N, the default
+with 60 frames), a nerfstudio camera_path.json (--camera-path), or the capture's own views
+(--views train|test|all). Writes DIR/rgb/*.png, optional DIR/depth/ and DIR/opacity/ (colour
+mapped), DIR/compare/ (template | edit, with --compare), DIR/camera_path.json (the cameras used,
+nerfstudio format) and an MP4 with --video.
+"""
+
+
+@dataclass
+class RenderConfig:
+    """Options of `sine render`."""
+
+    orbit: int | None = option(None, "orbit with N frames (the default path: 60 frames)")
+    camera_path: Path | None = option(None, "nerfstudio camera_path.json to render")
+    views: str | None = option(
+        None, "render the capture's views of a split", choices=["train", "test", "all"]
+    )
+    width: int | None = option(None, "image width (height keeps the aspect); default: the path's")
+    video: Path | None = option(None, "also write the frames as this MP4")
+    fps: float = option(24.0, "video frames per second")
+    depth: bool = option(False, "also write colour-mapped depth images (DIR/depth/)")
+    opacity: bool = option(False, "also write opacity images (DIR/opacity/)")
+    compare: bool = option(False, "also write template | edit strips (DIR/compare/; needs --edit)")
+    chunk: int = option(16384, "rays rendered at once (lower it if memory is short)")
+    device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
+    threads: int = option(0, "torch CPU threads (0: torch's default)")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("run", type=Path, help="run directory with a fitted template")
+    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    parser.add_argument("--edit", default=None, help="render the edit RUN/edits/NAME")
+    parser.add_argument("--strength", type=float, default=1.0, help="edit strength (0..1)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_options(parser, RenderConfig)
+
+
+def path_cameras(run_dir, cfg: RenderConfig) -> list:
+    """The cameras to render, from the chosen source (orbit by default)."""
+    from recon.rundir import RunDir
+    from render.camera_paths import orbit_cameras, read_camera_path
+
+    sources = [cfg.orbit is not None, cfg.camera_path is not None, cfg.views is not None]
+    if sum(sources) > 1:
+        raise SineError("choose one of --orbit, --camera-path and --views")
+    if cfg.camera_path is not None:
+        return read_camera_path(cfg.camera_path, cfg.width)
+    frames = RunDir(run_dir).load_cameras().frames
+    if cfg.views is not None:
+        cams = [c for c in frames if cfg.views == "all" or c.split == cfg.views]
+        if not cams:
+            raise SineError(f"{run_dir} has no {cfg.views} views")
+        if cfg.width is not None:
+            cams = [
+                c.resized(cfg.width, max(1, round(c.height * cfg.width / c.width))) for c in cams
+            ]
+        return cams
+    return orbit_cameras(frames, cfg.orbit if cfg.orbit is not None else 60, cfg.width)
+
+
+def run(args: argparse.Namespace) -> int:
+    from edit.scene import load_scene
+    from render.device import torch_threads
+    from render.frames import render_frames
+
+    cfg = from_args(RenderConfig, args)
+    if cfg.compare and args.edit is None:
+        raise SineError("--compare shows template | edit: give --edit NAME")
+    cameras = path_cameras(args.run, cfg)
+    with torch_threads(cfg.threads):
+        scene = load_scene(args.run, args.edit, args.strength, cfg.device)
+        reference = load_scene(args.run, None, device=cfg.device) if cfg.compare else None
+        summary = render_frames(
+            scene,
+            cameras,
+            args.out,
+            video=cfg.video,
+            fps=cfg.fps,
+            depth=cfg.depth,
+            opacity=cfg.opacity,
+            reference=reference,
+            chunk=cfg.chunk,
+            progress=not args.quiet,
+        )
+    video = f", video {summary['video']}" if summary["video"] else ""
+    print(
+        f"render: {summary['frames']} frames of {summary['width']}x{summary['height']} "
+        f"({scene.name}) -> {args.out}{video}"
+    )
+    return 0
