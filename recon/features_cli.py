@@ -12,7 +12,9 @@ Computes DINO patch features of every capture of RUN (cached in RUN/features/), 
 small feature field (hash grid + MLP, PCA coefficients of the DINO features) rendered with the
 frozen template's density (from `sine fit`). Writes checkpoints, the final field, held-out cosine
 similarity to DINO (metrics.json) and previews (image | DINO PCA | rendered PCA) into
-RUN/features/. An interrupted run resumes from its checkpoint; --force starts over.
+RUN/features/. An interrupted run resumes from its checkpoint; a finished one is skipped unless
+its options changed (then it is redone); --force starts over. The old results stay in
+RUN/features/ until the new run has finished.
 """
 
 
@@ -38,11 +40,20 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = from_args(FeaturesConfig, args)
     m = distill_features(args.run, cfg, force=args.force, progress=not args.quiet)
+    held_out = "heldout_cosine" in m
+    cosine = m["heldout_cosine"] if held_out else m["train_view_cosine"]
+    where = "held-out" if held_out else "training-view (the run has no held-out view)"
+    if m.get("skipped"):
+        print(
+            f"features: already done with these options ({m['iterations']} steps; {where} "
+            f"cosine to DINO {cosine:.3f}) in {args.run / 'features'}; --force to redo"
+        )
+        return 0
     print(
         f"features: {m['iterations']} steps in {m['train_seconds']:.1f} s "
         f"(DINO {m['dino_seconds']:.1f} s, rays {m['pool_seconds']:.1f} s); "
-        f"relative error {m['final_rel_error']:.3f}, held-out cosine to DINO "
-        f"{m['heldout_cosine']:.3f} (PCA-{m['pca_dim']} bound {m['pca_cosine']:.3f}) "
+        f"relative error {m['final_rel_error']:.3f}, {where} cosine to DINO "
+        f"{cosine:.3f} (PCA-{m['pca_dim']} bound {m['pca_cosine']:.3f}) "
         f"-> {args.run / 'features'}"
     )
     return 0

@@ -2,12 +2,14 @@
 
 Reads images/, masks/ (optional), cameras.json (split train/test) and proxy_mesh.ply; casts every
 training ray once against the proxy (and its inflated copy) and trains only on the rays that hit
-it (the others are background and need no field). Writes into RUN/template/:
+it (the others are background and need no field). Trains with `recon.training.Trainer` in
+RUN/template.partial/ and, once finished, moves that to RUN/template/:
 
-    checkpoint.pt      latest training state (field, background, optimizer, scheduler, step,
-                       RNG states); written atomically every `checkpoint_every` steps; a re-run
-                       resumes from it (`--force` starts over)
-    field.pt           the final field for later stages (`load_template`)
+    checkpoint.pt      the training state (field, background, optimizer, schedule, step, RNG
+                       states); written atomically every `checkpoint_every` steps and every
+                       `checkpoint_seconds`; a re-run resumes from it (`--force` starts over)
+    field.pt           the final field for later stages (`load_template`; configs as JSON text,
+                       loads with weights_only=True)
     metrics.json       held-out PSNR/SSIM (flat keys: heldout_psnr, heldout_ssim, ...)
     previews/NAME.png  held-out renders (left) next to the ground truth (right)
     log.json           loss / PSNR every `log_every` steps
@@ -15,7 +17,6 @@ it (the others are background and need no field). Writes into RUN/template/:
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -23,15 +24,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from recon.rundir import RunDir
-from recon.training import Training, finished_metrics
-from render.configs import option, to_dict, update_from_dict
-from render.device import check_finite, pick_device, torch_threads
+from recon.training import Trainer
+from render.configs import from_json, option, to_dict, to_json, validate
+from render.device import pick_device, torch_threads
 from render.errors import SineError
 from render.hashgrid import HashGridConfig
-from render.io import atomic_path, read_image, read_mask, write_image, write_json
+from render.io import load_torch, read_image, read_mask, save_torch, write_image, write_json
 from render.renderer import render_image, render_rays
 from render.sampler import BandSampler, ProxyRaycaster, RayHits, UniformSampler
 from render.template_field import Background, TemplateField, TemplateFieldConfig
@@ -41,40 +41,52 @@ from render.template_field import Background, TemplateField, TemplateFieldConfig
 class FitConfig:
     """Options of `sine fit` (template radiance field)."""
 
-    iterations: int = option(200, "training steps (300-1000 sharpen colour detail)")
-    batch_rays: int = option(2048, "rays per step (only rays that hit the inflated proxy)")
-    lr_grid: float = option(2e-2, "Adam learning rate of the hash table")
-    lr_mlp: float = option(1e-2, "Adam learning rate of the MLP heads")
-    lr_final_factor: float = option(0.1, "learning rates decay exponentially to this factor")
-    log2_table: int = option(17, "log2 of the hash-table rows per level (CPU: 14-17)")
-    levels: int = option(16, "hash-grid levels")
-    max_resolution: int = option(512, "finest hash-grid resolution over [-1, 1]^3")
+    iterations: int = option(200, "training steps (300-1000 sharpen colour detail)", low=1)
+    batch_rays: int = option(2048, "rays per step (only rays that hit the inflated proxy)", low=1)
+    lr_grid: float = option(2e-2, "Adam learning rate of the hash table", low=0.0)
+    lr_mlp: float = option(1e-2, "Adam learning rate of the MLP heads", low=0.0)
+    lr_final_factor: float = option(
+        0.1, "learning rates decay exponentially to this factor", low=0.0, high=1.0
+    )
+    log2_table: int = option(
+        17, "log2 of the hash-table rows per level (CPU: 14-17)", low=4, high=24
+    )
+    levels: int = option(16, "hash-grid levels", low=1, high=32)
+    max_resolution: int = option(512, "finest hash-grid resolution over [-1, 1]^3", low=2)
     sampler: str = option(
         "band", "ray sampler: proxy band or the paper's uniform 64+128", choices=["band", "uniform"]
     )
-    band_samples: int = option(16, "samples in the band [t_hit - d, t_hit + d] (band sampler)")
+    band_samples: int = option(
+        16, "samples in the band [t_hit - d, t_hit + d] (band sampler)", low=1
+    )
     coarse_samples: int = option(
         4,
         "coarse samples over the ray-in-sphere interval (band) "
         "or stratified coarse samples (uniform)",
+        low=0,
     )
-    importance_samples: int = option(128, "importance samples (uniform sampler only)")
-    band_width: float = option(0.04, "band half-width d and proxy inflation, in run units")
-    uniform_coarse: int = option(64, "stratified coarse samples (uniform sampler)")
-    mask_weight: float = option(0.1, "weight of the opacity-vs-mask BCE loss (0: off)")
+    importance_samples: int = option(128, "importance samples (uniform sampler only)", low=0)
+    band_width: float = option(0.04, "band half-width d and proxy inflation, in run units", low=0.0)
+    uniform_coarse: int = option(64, "stratified coarse samples (uniform sampler)", low=1)
+    mask_weight: float = option(0.1, "weight of the opacity-vs-mask BCE loss (0: off)", low=0.0)
     background: str = option(
         "auto",
         "background colour: auto (from masks), white, black, learn",
         choices=["auto", "white", "black", "learn"],
     )
-    checkpoint_every: int = option(250, "steps between checkpoints")
-    log_every: int = option(50, "steps between log entries")
-    previews: int = option(4, "held-out views written as previews (0: none)")
-    seed: int = option(0, "random seed (ray batches, jitter, initialisation)")
+    checkpoint_every: int = option(250, "steps between checkpoints", low=1)
+    checkpoint_seconds: float = option(
+        60.0,
+        "seconds of training between checkpoints (besides every checkpoint_every steps)",
+        low=0.0,
+    )
+    log_every: int = option(50, "steps between log entries", low=1)
+    previews: int = option(4, "held-out views written as previews (0: none)", low=0)
+    seed: int = option(0, "random seed (ray batches, jitter, initialisation)", low=0)
     device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
-    threads: int = option(0, "torch CPU threads (0: torch's default)")
-    eval_views: int = option(0, "held-out views to render for the metrics (0: all)")
-    eval_chunk: int = option(16384, "rays per chunk when rendering held-out views")
+    threads: int = option(0, "torch CPU threads (0: torch's default)", low=0)
+    eval_views: int = option(0, "held-out views to render for the metrics (0: all)", low=0)
+    eval_chunk: int = option(16384, "rays per chunk when rendering held-out views", low=1)
 
 
 # ---- data ---------------------------------------------------------------------------------
@@ -187,24 +199,19 @@ def field_config(cfg: FitConfig) -> TemplateFieldConfig:
     return TemplateFieldConfig(grid=grid)
 
 
-def field_config_from_dict(d: dict) -> TemplateFieldConfig:
-    d = dict(d)
-    grid = HashGridConfig(**d.pop("grid"))
-    names = {f.name for f in dataclasses.fields(TemplateFieldConfig)}
-    return TemplateFieldConfig(grid=grid, **{k: v for k, v in d.items() if k in names})
-
-
 def load_fitted(run_dir, device: torch.device | None = None):
     """(field, background, FitConfig it was fitted with) of a run (RUN/template/field.pt)."""
     run = RunDir(run_dir)
     path = run.template / "field.pt"
     if not path.is_file():
         raise SineError(f"{path} not found; run `sine fit {run.root}` first")
-    data = torch.load(path, map_location="cpu", weights_only=False)
-    field = TemplateField(field_config_from_dict(data["field_config"]))
+    data = load_torch(path)
+    if not isinstance(data.get("field_config"), str):
+        raise SineError(f"{path} is from an older version; run `sine fit {run.root}` again")
+    field = TemplateField(from_json(TemplateFieldConfig, data["field_config"]))
     field.load_state_dict(data["field"])
     bg = Background(data["background_color"], learnable=False)
-    fit_cfg = update_from_dict(FitConfig, data.get("fit_config") or {})
+    fit_cfg = from_json(FitConfig, data["fit_config"])
     device = device or torch.device("cpu")
     return field.to(device).eval(), bg.to(device), fit_cfg
 
@@ -218,6 +225,11 @@ def load_template(run_dir, device: torch.device | None = None) -> tuple[Template
 # ---- metrics ------------------------------------------------------------------------------
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
     mse = float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
+    return psnr_of_mse(mse)
+
+
+def psnr_of_mse(mse: float) -> float:
+    """PSNR in dB of a mean squared error of images in [0, 1]."""
     return 10.0 * math.log10(1.0 / max(mse, 1e-12))
 
 
@@ -256,11 +268,7 @@ def evaluate(
     }
 
 
-# ---- training -----------------------------------------------------------------------------
-def _checkpoint_path(run: RunDir) -> Path:
-    return run.template / "checkpoint.pt"
-
-
+# ---- training ---------------------------------------------------------------------------------
 # Settings that do not change the result: a checkpoint made with other values still resumes.
 _RUNTIME_KEYS = (
     "device",
@@ -270,6 +278,7 @@ _RUNTIME_KEYS = (
     "previews",
     "log_every",
     "checkpoint_every",
+    "checkpoint_seconds",
 )
 
 
@@ -280,11 +289,12 @@ def fit_template(
     progress: bool = True,
     stop_at: int | None = None,
 ) -> dict:
-    """Trains (or resumes) the template of `run_dir`; returns the metrics dict.
+    """Trains (or resumes) the template of `run_dir`; returns the metrics dict (with
+    "skipped": True when it was already fitted with these options).
 
     `stop_at` ends this call after that step, with a checkpoint (as if interrupted).
     """
-    cfg = cfg or FitConfig()
+    cfg = validate(cfg or FitConfig())
     run = RunDir(run_dir)
     run.require("cameras")
     if not run.proxy_mesh.is_file() and cfg.sampler == "band":
@@ -296,22 +306,23 @@ def fit_template(
 
 def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_at) -> dict:
     t_start = time.perf_counter()
-    ckpt_path = _checkpoint_path(run)
-    metrics_path = run.template / "metrics.json"
-    if force:
-        for p in (ckpt_path, metrics_path, run.template / "field.pt"):
-            p.unlink(missing_ok=True)
-    else:  # before any data is loaded: a finished fit costs nothing
-        done = finished_metrics(
-            ckpt_path,
-            run.template / "field.pt",
-            metrics_path,
-            to_dict(cfg),
-            _RUNTIME_KEYS,
-            cfg.iterations,
-        )
-        if done is not None:
-            return done  # already fitted with these settings
+    trainer = Trainer(
+        run.template,
+        "fit",
+        to_dict(cfg),
+        _RUNTIME_KEYS,
+        iterations=cfg.iterations,
+        seed=cfg.seed,
+        log_every=cfg.log_every,
+        checkpoint_every=cfg.checkpoint_every,
+        checkpoint_seconds=cfg.checkpoint_seconds,
+        force=force,
+        progress=progress,
+        advice="lower learning rates (e.g. half of --lr-grid and --lr-mlp)",
+    )
+    done = trainer.finished()  # before any data is loaded: a finished fit costs nothing
+    if done is not None:
+        return done
 
     train_views = load_views(run, "train")
     test_views = load_views(run, "test") or load_views(run, "val")
@@ -331,28 +342,13 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         groups.append(
             {"params": list(background.parameters()), "lr": cfg.lr_mlp, "name": "background"}
         )
-    modules = {"field": field, "background": background}
-    train = Training(
-        ckpt_path,
-        to_dict(cfg),
-        _RUNTIME_KEYS,
-        modules,
-        groups,
-        cfg.iterations,
-        cfg.lr_final_factor,
-        cfg.seed,
+    trainer.start(
+        {"field": field, "background": background}, groups, lr_final_factor=cfg.lr_final_factor
     )
-    generator = train.generator
-
+    generator = trainer.generator
     n_pool = len(pool.origins)
-    last = min(cfg.iterations, stop_at) if stop_at is not None else cfg.iterations
-    bar = tqdm(
-        total=cfg.iterations, initial=train.step, disable=not progress, desc="fit", unit="step"
-    )
-    field.train()
-    rays_done, t_window = 0, time.perf_counter()
-    while train.step < last:
-        t0 = time.perf_counter()
+
+    def step(_: int) -> dict[str, torch.Tensor]:
         idx = torch.randint(n_pool, (cfg.batch_rays,), generator=generator).to(device)
         out = render_rays(
             field,
@@ -364,57 +360,31 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
             perturb=True,
             generator=generator,
         )
-        mse = torch.mean((out["rgb"] - pool.rgb[idx]) ** 2)
-        loss = mse
+        terms = {"rgb": torch.mean((out["rgb"] - pool.rgb[idx]) ** 2)}
         if cfg.mask_weight > 0 and pool.has_masks:
             acc = out["opacity"].clamp(1e-5, 1 - 1e-5)
-            loss = loss + cfg.mask_weight * torch.nn.functional.binary_cross_entropy(
-                acc, pool.mask[idx]
-            )
+            bce = torch.nn.functional.binary_cross_entropy(acc, pool.mask[idx])
+            terms["mask"] = cfg.mask_weight * bce
         if background.learnable and len(pool.miss_rgb):
             j = torch.randint(len(pool.miss_rgb), (256,), generator=generator).to(device)
-            loss = loss + torch.mean((background()[None] - pool.miss_rgb[j]) ** 2)
-        check_finite(loss, train.step, "sine fit", run.template)
-        train.update(loss, t0)
-        step = train.step
-        rays_done += cfg.batch_rays
-        train_psnr = -10.0 * math.log10(max(mse.item(), 1e-12))
-        if step % cfg.log_every == 0 or step in (1, cfg.iterations):
-            train.log.append(
-                {
-                    "step": step,
-                    "loss": float(loss.item()),
-                    "psnr": train_psnr,
-                    "seconds": train.seconds,
-                }
-            )
-        if step % 10 == 0 or step == last:
-            now = time.perf_counter()
-            bar.set_postfix(
-                loss=f"{loss.item():.4f}",
-                psnr=f"{train_psnr:.2f}",
-                rays_s=f"{rays_done / max(now - t_window, 1e-9):.0f}",
-            )
-            rays_done, t_window = 0, now
-        bar.update(1)
-        if step % cfg.checkpoint_every == 0 or step == last:
-            train.checkpoint()
-    bar.close()
+            terms["background"] = torch.mean((background()[None] - pool.miss_rgb[j]) ** 2)
+        return terms
 
-    if train.step < cfg.iterations:  # stopped early on purpose
-        return {"step": train.step}
+    field.train()
+    if not trainer.run(step, stop_at):  # stopped early on purpose
+        return {"step": trainer.step}
+    for entry in trainer.log:
+        entry["psnr"] = psnr_of_mse(entry["rgb"])
 
-    field_path = run.template / "field.pt"
-    with atomic_path(field_path) as tmp:
-        torch.save(
-            {
-                "field_config": to_dict(field.cfg),
-                "field": field.state_dict(),
-                "background_color": background().detach().cpu().tolist(),
-                "fit_config": to_dict(cfg),
-            },
-            tmp,
-        )
+    save_torch(
+        trainer.work_dir / "field.pt",
+        {
+            "field_config": to_json(field.cfg),
+            "field": field.state_dict(),
+            "background_color": background().detach().cpu().tolist(),
+            "fit_config": to_json(cfg),
+        },
+    )
     t_eval = time.perf_counter()
     metrics = evaluate(
         field,
@@ -423,27 +393,27 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         test_views,
         device,
         cfg.eval_chunk,
-        run.template / "previews",
+        trainer.work_dir / "previews",
         cfg.previews,
     )
     metrics.update(
         {
-            "iterations": train.step,
-            "train_seconds": train.seconds,
+            "iterations": trainer.step,
+            "train_seconds": trainer.seconds,
             "eval_seconds": time.perf_counter() - t_eval,
             "total_seconds": time.perf_counter() - t_start,
-            "rays_per_second": train.step * cfg.batch_rays / max(train.seconds, 1e-9),
+            "rays_per_second": trainer.step * cfg.batch_rays / max(trainer.seconds, 1e-9),
             "samples_per_ray": sampler.samples_per_ray,
             "sampler": cfg.sampler,
             "train_rays_needing_field": len(pool.origins),
             "train_rays_total": pool.n_total,
-            "final_train_psnr": train.log[-1]["psnr"] if train.log else None,
+            "final_train_psnr": trainer.log[-1]["psnr"] if trainer.log else None,
             "background_color": background().detach().cpu().tolist(),
             "background_learned": bool(background.learnable),
             "device": str(device),
         }
     )
-    write_json(run.template / "metrics.json", metrics)
-    write_json(run.template / "log.json", train.log)
+    write_json(trainer.work_dir / "metrics.json", metrics)
+    trainer.publish()
     run.append_config("fit", cfg)
     return metrics

@@ -11,7 +11,9 @@ DESCRIPTION = """\
 Trains the template radiance field (hash grid + small MLPs) on RUN's images, masks and cameras,
 sampling only near the proxy mesh (RUN/proxy_mesh.ply, from `sine recon`). Writes checkpoints,
 the final field, held-out PSNR/SSIM (metrics.json) and side-by-side previews into RUN/template/.
-An interrupted fit resumes from the latest checkpoint when re-run; --force starts over.
+An interrupted fit resumes from the latest checkpoint when re-run; a finished one is skipped
+unless its options changed (then it is redone); --force starts over. The old results stay in
+RUN/template/ until the new fit has finished (it trains in RUN/template.partial/).
 """
 
 
@@ -39,6 +41,13 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = from_args(FitConfig, args)
     metrics = fit_template(args.run, cfg, force=args.force, progress=not args.quiet)
+    if metrics.get("skipped"):
+        print(
+            f"fit: already done with these options ({metrics['iterations']} steps; held-out PSNR "
+            f"{metrics.get('heldout_psnr', float('nan')):.2f} dB) in {args.run / 'template'}; "
+            "--force to redo"
+        )
+        return 0
     print(
         f"fit: {metrics['iterations']} steps in {metrics['train_seconds']:.1f} s "
         f"({metrics['rays_per_second']:.0f} rays/s, {metrics['samples_per_ray']} samples/ray); "

@@ -1,138 +1,382 @@
-"""Checkpointed training state shared by `sine fit` and `sine features` (`Training`).
+"""The training loop of every training stage (`sine fit`, `sine features`, the editing stages).
 
-A checkpoint holds the resolved config, every module's and the optimizer's / scheduler's state,
-the RNG states, the step, the log and the training seconds, so an interrupted run resumes to the
-same parameters as an uninterrupted one. Settings listed as runtime keys (device, threads, ...)
-do not change the result: a checkpoint made with other values of those still resumes.
+A stage supplies its state (modules, ...), its parameter groups and one function
+`step(i) -> {name: loss term}`; `Trainer` owns the rest: start / resume, zero_grad, backward,
+the optimiser and learning-rate schedule steps, the NaN/inf check, the progress bar, the log,
+checkpoints (every `checkpoint_every` steps and every `checkpoint_seconds` of wall time) and the
+"already finished with these options" check.
+
+    trainer = Trainer(run.root / "mystage", "mystage", to_dict(cfg), RUNTIME_KEYS,
+                      iterations=cfg.iterations, seed=cfg.seed, force=force)
+    if (done := trainer.finished()) is not None:  # cheap: before any data is loaded
+        return done                                # metrics.json + {"skipped": True}
+    model = ...  # the stage's modules and data (caches may go into trainer.work_dir from now on)
+    trainer.start({"model": model}, [{"name": "mlp", "params": list(model.parameters()),
+                                      "lr": 1e-2}], lr_final_factor=0.1)
+
+    def step(i: int) -> dict[str, torch.Tensor]:
+        idx = torch.randint(n, (1024,), generator=trainer.generator)
+        return {"rgb": ((model(x[idx]) - y[idx]) ** 2).mean(), "reg": 1e-3 * model.reg()}
+
+    if not trainer.run(step, stop_at=stop_at):     # stopped early on purpose
+        return {"step": trainer.step}
+    write_json(trainer.work_dir / "metrics.json", metrics)  # every output into work_dir
+    trainer.publish()
+
+Steps. Before each step the loop zeroes the gradients; it sums the returned terms into the loss
+(logged as "loss", each term under its own name), stops with a SineError when the loss is not
+finite, back-propagates it and takes one optimiser step and one schedule step. Deferred
+back-propagation: with `manual_backward=True` the step calls `backward()` itself, as often as it
+needs (e.g. once per image patch rendered with a graph: the gradients accumulate), and returns
+the detached terms for the log; the loop then only checks and steps.
+
+Parameter groups are torch's dicts, each with a unique "name" and its "lr"; each group's learning
+rate is lr x factor(step), factor = `schedules[name]` or, by default, an exponential decay to
+`lr_final_factor` at `iterations` (`exponential_decay`). Adam (betas 0.9, 0.99) unless the stage
+passes another `optimizer` factory.
+
+State and checkpoints. `start(state)` names everything a checkpoint must hold besides the
+optimiser, the schedule, the loop's generator and the torch RNGs, which the trainer adds itself:
+objects with `state_dict()` (modules, other optimisers), torch.Generator, tensors, numpy arrays
+(stored as tensors) and JSON-able dicts / lists (stored as JSON text). Resuming restores each of
+them in place (arrays and tensors keep their shape), so N steps in one go and k steps, an
+interruption and N - k more give bit-identical parameters. Checkpoints hold only tensors and
+plain values and are written atomically; they load with `torch.load(..., weights_only=True)`.
+
+Files. `directory` (e.g. RUN/template/) holds a finished run only: checkpoint.pt, metrics.json,
+log.json and whatever the stage wrote. A run in progress lives in `directory.partial` (its
+`work_dir`, with its checkpoint); `publish()` swaps it in once the stage has written its
+outputs there. So an interrupted run resumes from the partial checkpoint, and `--force` or
+changed options replace the old results only when the new run has finished. A finished run whose
+recorded options differ from the given ones (runtime keys such as device and threads aside) is
+trained again, and the changed options are named; an interrupted run with other options is
+discarded the same way.
 """
 
 from __future__ import annotations
 
+import json
+import os
+import pickle
+import shutil
+import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import torch
+from tqdm import tqdm
 
 from render.errors import SineError
-from render.io import atomic_path, read_json
+from render.io import load_torch, read_json, save_torch, write_json
+
+StepFn = Callable[[int], dict[str, torch.Tensor]]
+_RESERVED = ("optimizer", "scheduler", "generator")
 
 
-def same_settings(a: dict, b: dict, runtime_keys: tuple[str, ...]) -> bool:
-    """Whether two resolved configs give the same result (runtime keys ignored)."""
+def progress_bar(**kwargs) -> tqdm:
+    """A tqdm bar that, when stderr is not a terminal (a log file, a pipe), updates at most
+    every 30 s instead of flooding the log with carriage returns."""
+    if not sys.stderr.isatty():
+        kwargs.setdefault("mininterval", 30.0)
+    return tqdm(**kwargs)
 
-    def strip(d: dict) -> dict:
-        return {k: v for k, v in d.items() if k not in runtime_keys}
 
-    return strip(a) == strip(b)
+def exponential_decay(final_factor: float, iterations: int) -> Callable[[int], float]:
+    """factor(step) = final_factor ** (step / iterations): 1 at the start, final_factor at the end."""
+    decay = final_factor ** (1.0 / max(iterations, 1))
+    return lambda step: decay**step
 
 
-def finished_metrics(
-    checkpoint: Path,
-    final: Path,
-    metrics: Path,
-    config: dict,
-    runtime_keys: tuple[str, ...],
-    iterations: int,
-) -> dict | None:
-    """The metrics of a run already trained to `iterations` with these settings, else None."""
-    if not (metrics.is_file() and final.is_file() and checkpoint.is_file()):
+def changed_options(old: dict, new: dict, runtime_keys=()) -> list[str]:
+    """'name: old -> new' for every option that differs (runtime keys ignored)."""
+    names = sorted((set(old) | set(new)) - set(runtime_keys))
+    return [
+        f"{k}: {old.get(k, '(unset)')} -> {new.get(k, '(unset)')}"
+        for k in names
+        if old.get(k) != new.get(k)
+    ]
+
+
+# ---- checkpoint values ------------------------------------------------------------------------
+def pack(value: Any) -> dict:
+    """One object of a stage's state as tensors / plain values (see `unpack_into`)."""
+    if isinstance(value, torch.Generator):
+        return {"generator": value.get_state()}
+    if isinstance(value, torch.Tensor):
+        return {"tensor": value.detach().cpu().clone()}
+    if isinstance(value, np.ndarray):
+        return {"array": torch.from_numpy(np.array(value))}
+    if hasattr(value, "state_dict") and hasattr(value, "load_state_dict"):
+        return {"state_dict": value.state_dict()}
+    if isinstance(value, (dict, list)):
+        return {"json": json.dumps(value)}
+    raise TypeError(f"cannot checkpoint a {type(value).__name__}")
+
+
+def unpack_into(value: Any, packed: dict, name: str) -> None:
+    """Restores `value` in place from what `pack` made of it."""
+    if "generator" in packed:
+        value.set_state(packed["generator"])
+    elif "tensor" in packed or "array" in packed:
+        saved = packed.get("tensor", packed.get("array"))
+        if tuple(saved.shape) != tuple(value.shape):
+            raise SineError(f"checkpoint entry {name!r} has shape {tuple(saved.shape)}")
+        if isinstance(value, np.ndarray):
+            value[...] = saved.numpy()
+        else:
+            with torch.no_grad():
+                value.copy_(saved)
+    elif "state_dict" in packed:
+        value.load_state_dict(packed["state_dict"])
+    elif isinstance(value, dict):
+        value.clear()
+        value.update(json.loads(packed["json"]))
+    else:
+        value[:] = json.loads(packed["json"])
+
+
+def read_checkpoint_header(path: Path) -> dict | None:
+    """{"config": dict, "step": int} of a checkpoint (tensors are not read), None when the file
+    is missing or not a checkpoint of this format."""
+    if not path.is_file():
         return None
-    done = torch.load(checkpoint, map_location="cpu", weights_only=False)
-    if done["step"] >= iterations and same_settings(done["config"], config, runtime_keys):
-        return read_json(metrics)
-    return None
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except (RuntimeError, OSError, EOFError, ValueError, pickle.UnpicklingError):
+        return None  # corrupt, truncated, pickled objects or an older format: not usable
+    if not isinstance(data, dict) or data.get("format") != _FORMAT:
+        return None
+    return {"config": json.loads(data["config"]), "step": int(data["step"])}
 
 
-def save_state(
-    path: Path, config: dict, modules: dict, optimizer, scheduler, generator, step, log, seconds
-) -> None:
-    """Writes the training state atomically (`modules`: name -> nn.Module)."""
-    state = {name: module.state_dict() for name, module in modules.items()}
-    state.update(
-        config=config,
-        optimizer=optimizer.state_dict(),
-        scheduler=scheduler.state_dict(),
-        generator=generator.get_state(),
-        torch_rng=torch.get_rng_state(),
-        step=step,
-        log=log,
-        train_seconds=seconds,
-    )
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+_FORMAT = "sine-checkpoint-1"
 
 
-def restore_state(
-    path: Path,
-    config: dict,
-    runtime_keys: tuple[str, ...],
-    modules: dict,
-    optimizer,
-    scheduler,
-    generator,
-) -> tuple[int, list, float]:
-    """Loads `path` into the modules / optimizer / RNGs; returns (step, log, train seconds).
+# ---- the loop ---------------------------------------------------------------------------------
+class Trainer:
+    """One resumable training run of a stage; see the module docstring.
 
-    Without a checkpoint: (0, [], 0.0). One made with other settings is an error (use --force).
+    directory: the stage's results folder; name: the stage as the user knows it (messages, the
+    progress bar); config: the stage's resolved options (to_dict(cfg)); runtime_keys: options
+    that do not change the result (device, threads, ...). `advice`: what to change when the loss
+    diverges (resuming as is would repeat the same steps).
     """
-    if not path.exists():
-        return 0, [], 0.0
-    state = torch.load(path, map_location="cpu", weights_only=False)
-    if not same_settings(state["config"], config, runtime_keys):
-        raise SineError(f"{path} was made with other settings; re-run with --force to start over")
-    for name, module in modules.items():
-        module.load_state_dict(state[name])
-    optimizer.load_state_dict(state["optimizer"])
-    scheduler.load_state_dict(state["scheduler"])
-    generator.set_state(state["generator"])
-    torch.set_rng_state(state["torch_rng"])
-    return state["step"], state["log"], state["train_seconds"]
-
-
-class Training:
-    """One resumable training stage (`sine fit`, `sine features`): Adam over `param_groups` with
-    a learning rate decaying exponentially to `lr_final_factor` at `iterations`, the seeded
-    generator for batches, and the step / log / seconds counters, restored from `path` when a
-    checkpoint with the same settings exists (else an error, see `restore_state`)."""
 
     def __init__(
         self,
-        path: Path,
+        directory: str | os.PathLike,
+        name: str,
         config: dict,
-        runtime_keys: tuple[str, ...],
-        modules: dict,
-        param_groups: list,
+        runtime_keys: tuple[str, ...] = (),
+        *,
         iterations: int,
-        lr_final_factor: float,
-        seed: int,
+        seed: int = 0,
+        log_every: int = 50,
+        checkpoint_every: int = 250,
+        checkpoint_seconds: float = 60.0,
+        force: bool = False,
+        progress: bool = True,
+        manual_backward: bool = False,
+        advice: str = "lower learning rates",
     ):
-        self.path, self.config, self.modules = path, config, modules
-        self.optimizer = torch.optim.Adam(param_groups, betas=(0.9, 0.99))
-        decay = lr_final_factor ** (1.0 / max(iterations, 1))
-        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda k: decay**k)
-        self.generator = torch.Generator().manual_seed(seed)
-        self.step, self.log, self.seconds = restore_state(
-            path, config, runtime_keys, modules, self.optimizer, self.scheduler, self.generator
-        )
+        self.directory = Path(directory)
+        self.work_dir = self.directory.with_name(self.directory.name + ".partial")
+        self.name, self.config, self.runtime_keys = name, config, tuple(runtime_keys)
+        self.iterations, self.seed, self.log_every = iterations, seed, log_every
+        self.checkpoint_every, self.checkpoint_seconds = checkpoint_every, checkpoint_seconds
+        self.force, self.progress, self.manual_backward = force, progress, manual_backward
+        self.advice = advice
+        self.step, self.seconds, self.log = 0, 0.0, []
+        self.optimizer = self.scheduler = self.generator = None
+        self.state: dict[str, Any] = {}
+        self._resumable: bool | None = None  # decided by finished() or start()
 
-    def update(self, loss: torch.Tensor, started: float) -> None:
-        """One optimiser step on `loss`; the step began at time.perf_counter() == `started`."""
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
-        self.scheduler.step()
-        self.step += 1
-        self.seconds += time.perf_counter() - started
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.work_dir / "checkpoint.pt"
+
+    # ---- before loading anything -----------------------------------------------------------
+    def finished(self) -> dict | None:
+        """metrics.json (+ "skipped": True) of a run finished with these options, else None.
+
+        Says why it trains again when the finished run had other options. When it returns None,
+        work_dir holds only a resumable checkpoint (or nothing): the stage may write into it."""
+        metrics = self.directory / "metrics.json"
+        done = read_checkpoint_header(self.directory / "checkpoint.pt")
+        if self.force or done is None or not metrics.is_file():
+            if self.force and metrics.is_file():
+                self._say(f"--force: training again; {self.directory} stays until it finishes")
+            elif metrics.is_file():
+                self._say(
+                    f"{self.directory} is unreadable or from an older version: training again"
+                )
+            self._prepare_work_dir()
+            return None
+        changes = changed_options(done["config"], self.config, self.runtime_keys)
+        if not changes and done["step"] >= self.iterations:
+            return {**read_json(metrics), "skipped": True}
+        self._say(
+            f"options changed since the finished run in {self.directory} "
+            f"({'; '.join(changes)}): training again (the old results stay until it finishes)"
+        )
+        self._prepare_work_dir()
+        return None
+
+    def _prepare_work_dir(self) -> None:
+        """Keeps work_dir when its checkpoint resumes with these options, else empties it."""
+        header = None if self.force else read_checkpoint_header(self.checkpoint_path)
+        self._resumable = False
+        if header is not None:
+            changes = changed_options(header["config"], self.config, self.runtime_keys)
+            if not changes:
+                self._resumable = True
+                return
+            self._say(f"discarding the interrupted run in {self.work_dir} ({'; '.join(changes)})")
+        elif self.checkpoint_path.is_file() and not self.force:
+            self._say(
+                f"{self.checkpoint_path} is unreadable or from an older version: starting over"
+            )
+        shutil.rmtree(self.work_dir, ignore_errors=True)
+
+    # ---- setup -------------------------------------------------------------------------------
+    def start(
+        self,
+        state: dict[str, Any],
+        groups: list[dict],
+        schedules: dict[str, Callable[[int], float]] | None = None,
+        lr_final_factor: float = 0.1,
+        optimizer: Callable[[list[dict]], torch.optim.Optimizer] | None = None,
+    ) -> None:
+        """Builds the optimiser and schedules, seeds the generator, then resumes from work_dir's
+        checkpoint when it was made with these options (see the module docstring)."""
+        clash = [k for k in state if k in _RESERVED]
+        if clash:
+            raise ValueError(f"state names {clash} are reserved for the trainer")
+        names = [g.get("name") for g in groups]
+        if None in names or len(set(names)) != len(names):
+            raise ValueError(f"every parameter group needs a unique 'name' (got {names})")
+        make = optimizer or (lambda g: torch.optim.Adam(g, betas=(0.9, 0.99)))
+        self.optimizer = make(groups)
+        schedules = schedules or {}
+        default = exponential_decay(lr_final_factor, self.iterations)
+        factors = [schedules.get(n, default) for n in names]
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, factors)
+        self.generator = torch.Generator().manual_seed(self.seed)
+        self.state = {
+            **state,
+            "optimizer": self.optimizer,
+            "scheduler": self.scheduler,
+            "generator": self.generator,
+        }
+        if self._resumable is None:  # finished() was not called
+            self._prepare_work_dir()
+        if self._resumable:
+            self._load(self.checkpoint_path)
+
+    def _load(self, path: Path) -> None:
+        data = load_torch(path)
+        for name, value in self.state.items():
+            if name not in data["state"]:
+                raise SineError(f"{path} has no {name!r}; delete it or re-run with --force")
+            unpack_into(value, data["state"][name], name)
+        torch.set_rng_state(data["torch_rng"])
+        cuda = data.get("cuda_rng") or []
+        if cuda and torch.cuda.is_available() and len(cuda) == torch.cuda.device_count():
+            torch.cuda.set_rng_state_all(cuda)
+        self.step, self.seconds = int(data["step"]), float(data["seconds"])
+        self.log = json.loads(data["log"])
 
     def checkpoint(self) -> None:
-        save_state(
-            self.path,
-            self.config,
-            self.modules,
-            self.optimizer,
-            self.scheduler,
-            self.generator,
-            self.step,
-            self.log,
-            self.seconds,
+        """Writes the whole state to work_dir/checkpoint.pt (atomically)."""
+        data = {
+            "format": _FORMAT,
+            "stage": self.name,
+            "config": json.dumps(self.config, sort_keys=True),
+            "step": self.step,
+            "seconds": self.seconds,
+            "log": json.dumps(self.log),
+            "state": {name: pack(value) for name, value in self.state.items()},
+            "torch_rng": torch.get_rng_state(),
+        }
+        if torch.cuda.is_available():
+            data["cuda_rng"] = torch.cuda.get_rng_state_all()
+        save_torch(self.checkpoint_path, data)
+
+    # ---- the pieces of one step (for stages that need them separately) ---------------------
+    def zero_grad(self) -> None:
+        self.optimizer.zero_grad(set_to_none=True)
+
+    def optimizer_step(self) -> None:
+        """One optimiser step and one learning-rate schedule step."""
+        self.optimizer.step()
+        self.scheduler.step()
+
+    def check_finite(self, loss: torch.Tensor) -> None:
+        """A readable SineError when the loss is NaN/inf (the last checkpoint stays)."""
+        if not bool(torch.isfinite(loss)):
+            raise SineError(
+                f"{self.name} diverged at step {self.step + 1} (the loss is {loss.item()}); its "
+                f"last checkpoint in {self.work_dir} is kept, but resuming would repeat the same "
+                f"steps and diverge again: re-run with {self.advice}"
+            )
+
+    # ---- the loop ----------------------------------------------------------------------------
+    def run(self, step: StepFn, stop_at: int | None = None) -> bool:
+        """Trains from the current step to `iterations` (or to `stop_at`, as if interrupted there,
+        with a checkpoint); True when training has reached `iterations`."""
+        last = self.iterations if stop_at is None else min(self.iterations, stop_at)
+        bar = progress_bar(
+            total=self.iterations,
+            initial=self.step,
+            disable=not self.progress,
+            desc=self.name,
+            unit="step",
         )
+        saved_at = time.perf_counter()
+        while self.step < last:
+            t0 = time.perf_counter()
+            self.zero_grad()
+            terms = step(self.step)
+            if not terms:
+                raise ValueError("a training step must return at least one loss term")
+            loss = sum(terms.values())
+            self.check_finite(loss)
+            if not self.manual_backward:
+                loss.backward()
+            self.optimizer_step()
+            self.step += 1
+            self.seconds += time.perf_counter() - t0
+            if self.step % self.log_every == 0 or self.step in (1, self.iterations):
+                entry = {"step": self.step, "loss": loss.item()}
+                entry.update({k: v.item() for k, v in terms.items()})
+                self.log.append({**entry, "seconds": self.seconds})
+            if self.step % 10 == 0 or self.step == last:
+                bar.set_postfix({k: f"{v.item():.4f}" for k, v in {"loss": loss, **terms}.items()})
+            bar.update(1)
+            now = time.perf_counter()
+            if (
+                self.step % self.checkpoint_every == 0
+                or self.step == last
+                or now - saved_at >= self.checkpoint_seconds
+            ):
+                self.checkpoint()
+                saved_at = now
+        bar.close()
+        return self.step >= self.iterations
+
+    # ---- after training ----------------------------------------------------------------------
+    def publish(self) -> None:
+        """Writes log.json and moves work_dir to `directory`, replacing the old results."""
+        write_json(self.work_dir / "log.json", self.log)
+        old = self.directory.with_name(self.directory.name + ".old")
+        shutil.rmtree(old, ignore_errors=True)
+        if self.directory.exists():
+            os.replace(self.directory, old)
+        os.replace(self.work_dir, self.directory)
+        shutil.rmtree(old, ignore_errors=True)
+
+    def _say(self, text: str) -> None:
+        print(f"{self.name}: {text}", flush=True)

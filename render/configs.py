@@ -2,14 +2,18 @@
 
 Every config field is declared with `option(default, "help text")`; the help text is the field's
 documentation and the CLI's `--help`. `add_options` turns a dataclass into argparse options,
-`from_args` builds the dataclass back from parsed arguments, `to_dict` is what gets saved in the
-run directory's `config.yaml`.
+`from_args` builds the dataclass back from parsed arguments (and checks it with `validate`),
+`to_dict` is what gets saved in the run directory's `config.yaml`; `from_dict` / `to_json` /
+`from_json` are the one (de)serialiser of configs, nested ones included (field configs in
+checkpoints are JSON text). `option(..., low=, high=)` declares a numeric range that `validate`
+checks before any work starts.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import types
 import typing
 from pathlib import Path
@@ -18,9 +22,18 @@ from typing import Any, TypeVar
 T = TypeVar("T")
 
 
-def option(default: Any = dataclasses.MISSING, help: str = "", *, choices=None, flag=None):
-    """A dataclass field with its help text (and optional choices / explicit flag name)."""
-    metadata = {"help": help, "choices": choices, "flag": flag}
+def option(
+    default: Any = dataclasses.MISSING,
+    help: str = "",
+    *,
+    choices=None,
+    flag=None,
+    low: float | None = None,
+    high: float | None = None,
+):
+    """A dataclass field with its help text (and optional choices / explicit flag name / the
+    range [low, high] its value, or each item of a list value, must lie in)."""
+    metadata = {"help": help, "choices": choices, "flag": flag, "low": low, "high": high}
     if isinstance(default, (list, dict, set)):
         value = default
         return dataclasses.field(default_factory=lambda: type(value)(value), metadata=metadata)
@@ -44,7 +57,7 @@ def add_options(parser: argparse.ArgumentParser, cls: type, skip: tuple[str, ...
         if f.name in skip:
             continue
         tp, _ = _base_type(hints[f.name])
-        flag = f.metadata.get("flag") or "--" + f.name.replace("_", "-")
+        flag = _flag(f)
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
         help_text = f.metadata.get("help", "")
         kwargs: dict[str, Any] = {"dest": f.name, "help": f"{help_text} (default: {default})"}
@@ -61,15 +74,42 @@ def add_options(parser: argparse.ArgumentParser, cls: type, skip: tuple[str, ...
         group.add_argument(flag, **kwargs)
 
 
+def _flag(f: dataclasses.Field) -> str:
+    return f.metadata.get("flag") or "--" + f.name.replace("_", "-")
+
+
 def from_args(cls: type[T], args: argparse.Namespace, **overrides: Any) -> T:
-    """Builds `cls` from parsed arguments; fields not on the command line keep their defaults."""
+    """Builds `cls` from parsed arguments (fields not on the command line keep their defaults)
+    and validates it (a SineError names the first option out of range)."""
     values = {}
     for f in dataclasses.fields(cls):
         if f.name in overrides:
             values[f.name] = overrides[f.name]
         elif hasattr(args, f.name):
             values[f.name] = getattr(args, f.name)
-    return cls(**values)
+    return validate(cls(**values))
+
+
+def validate(config: T) -> T:
+    """Checks every option declared with a range (`low`/`high`) or `choices`; returns `config`.
+
+    Raises SineError("--iterations must be >= 1 (got -5)") for the first bad value."""
+    from render.errors import SineError
+
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        items = value if isinstance(value, (list, tuple)) else [value]
+        low, high, choices = (f.metadata.get(k) for k in ("low", "high", "choices"))
+        for item in items:
+            if item is None or isinstance(item, bool):
+                continue
+            if choices and item not in choices:
+                raise SineError(f"{_flag(f)} must be one of {', '.join(map(str, choices))}")
+            if low is not None and item < low:
+                raise SineError(f"{_flag(f)} must be >= {low} (got {item})")
+            if high is not None and item > high:
+                raise SineError(f"{_flag(f)} must be <= {high} (got {item})")
+    return config
 
 
 def to_dict(config: Any) -> dict:
@@ -87,7 +127,28 @@ def to_dict(config: Any) -> dict:
     return out
 
 
-def update_from_dict(cls: type[T], data: dict) -> T:
-    """Builds `cls` from a dict (e.g. a saved config), ignoring unknown keys."""
-    names = {f.name for f in dataclasses.fields(cls)}
-    return cls(**{k: v for k, v in data.items() if k in names})
+def from_dict(cls: type[T], data: dict) -> T:
+    """Builds `cls` from a dict (e.g. a saved config; nested dataclass fields from nested dicts),
+    ignoring unknown keys; missing keys keep their defaults."""
+    hints = typing.get_type_hints(cls)
+    values = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in data:
+            continue
+        value, (tp, _) = data[f.name], _base_type(hints[f.name])
+        if dataclasses.is_dataclass(tp) and isinstance(value, dict):
+            value = from_dict(tp, value)
+        elif tp is Path and value is not None:
+            value = Path(value)
+        values[f.name] = value
+    return cls(**values)
+
+
+def to_json(config: Any) -> str:
+    """A dataclass config as JSON text (how checkpoints and field files store configs)."""
+    return json.dumps(to_dict(config), sort_keys=True)
+
+
+def from_json(cls: type[T], text: str) -> T:
+    """The config `to_json` wrote (unknown keys ignored)."""
+    return from_dict(cls, json.loads(text))

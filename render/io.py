@@ -1,8 +1,10 @@
-"""File IO shared by every stage: atomic writes, images, JSON/YAML.
+"""File IO shared by every stage: atomic writes, images, contact sheets, JSON/YAML, torch files.
 
 Images inside the code are float32 RGB in [0, 1], HWC. Every artefact is written to a temporary
 file in the destination folder first and then renamed, so an interrupted run never leaves a
-half-written file behind.
+half-written file behind. Torch files (checkpoints, fields) are read with `weights_only=True`:
+they hold tensors and plain values only (configs as JSON text), so opening a run directory
+someone shared never executes pickled code.
 """
 
 from __future__ import annotations
@@ -126,6 +128,41 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
     if image.ndim == 3:
         image = image[..., ::-1]  # RGB -> BGR
     _write_cv(path, image)
+
+
+def contact_sheet(tiles: list[np.ndarray], columns: int, fill: float = 1.0) -> np.ndarray:
+    """Thumbnails [h_i, w, 3] in rows of `columns` -> one image [rows * h, columns * w, 3];
+    shorter tiles and the empty cells of the last row are filled with `fill`."""
+    th = max(t.shape[0] for t in tiles)
+    tiles = [np.pad(t, ((0, th - t.shape[0]), (0, 0), (0, 0)), constant_values=fill) for t in tiles]
+    while len(tiles) % columns:
+        tiles.append(np.full_like(tiles[0], fill))
+    return np.vstack([np.hstack(tiles[i : i + columns]) for i in range(0, len(tiles), columns)])
+
+
+def save_torch(path: str | os.PathLike, obj: Any) -> None:
+    """torch.save, atomically; `obj` should hold only tensors and plain values (see load_torch)."""
+    import torch
+
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
+
+
+def load_torch(path: str | os.PathLike) -> Any:
+    """torch.load(path, weights_only=True) onto the CPU; an unreadable file (corrupt, truncated,
+    or holding pickled Python objects) is a SineError that names it."""
+    import pickle
+
+    import torch
+
+    path = Path(path)
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise SineError(f"{path} does not exist") from None
+    except (RuntimeError, OSError, EOFError, pickle.UnpicklingError) as exc:
+        why = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
+        raise SineError(f"cannot read {path} ({why}); delete it or re-run with --force") from None
 
 
 def write_mask(path: str | os.PathLike, mask: np.ndarray) -> None:

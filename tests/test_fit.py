@@ -14,7 +14,7 @@ from render.errors import SineError
 from render.io import read_json, read_yaml, write_image, write_mask
 
 
-def _make_run(root, n_views=6, size=48):
+def _make_run(root, n_views=12, size=48):
     """A sphere (radius 0.5) coloured by its normal, white background, ring of cameras."""
     mesh = o3d.geometry.TriangleMesh.create_sphere(0.5, 40)
     run = RunDir(root)
@@ -75,13 +75,15 @@ def _copy(run, dst):
     return RunDir(dst)
 
 
-def test_fit_lowers_loss_and_writes_outputs(tiny_run, tmp_path):
+def test_fit_reaches_a_psnr_floor_and_writes_outputs(tiny_run, tmp_path):
     run = _copy(tiny_run, tmp_path / "run")
-    metrics = fit_template(run.root, FitConfig(iterations=20, **TINY), progress=False)
+    metrics = fit_template(run.root, FitConfig(iterations=200, **TINY), progress=False)
     log = read_json(run.template / "log.json")
-    assert log[0]["step"] == 1 and log[-1]["loss"] < 0.7 * log[0]["loss"]
-    assert metrics["iterations"] == 20 and metrics["heldout_views"] == 2
-    assert np.isfinite(read_json(run.template / "metrics.json")["heldout_psnr"])
+    assert log[0]["step"] == 1 and log[-1]["loss"] < 0.3 * log[0]["loss"]
+    assert metrics["iterations"] == 200 and metrics["heldout_views"] == 4
+    # Measured 28.4 dB on the 4 held-out views; the sphere's mean colour inside the true mask
+    # over the true background scores 21.8 dB, a fit that learnt nothing far less.
+    assert read_json(run.template / "metrics.json")["heldout_psnr"] > 25.0
     assert metrics["background_color"] == [1.0, 1.0, 1.0]  # from the masks
     previews = list((run.template / "previews").glob("*.png"))
     assert len(previews) == 1
@@ -90,11 +92,12 @@ def test_fit_lowers_loss_and_writes_outputs(tiny_run, tmp_path):
     out = field(torch.zeros(4, 3), torch.tensor([[0.0, 0.0, 1.0]] * 4))
     assert out["rgb"].shape == (4, 3) and out["geo_feat"].shape[0] == 4
     # a re-run with the same settings is a no-op returning the same metrics
-    again = fit_template(run.root, FitConfig(iterations=20, **TINY), progress=False)
-    assert again["heldout_psnr"] == metrics["heldout_psnr"]
+    again = fit_template(run.root, FitConfig(iterations=200, **TINY), progress=False)
+    assert again["heldout_psnr"] == metrics["heldout_psnr"] and again["skipped"]
+    assert torch.load(run.template / "field.pt", weights_only=True)["fit_config"]
 
 
-def test_resume_gives_the_same_parameters(tiny_run, tmp_path):
+def test_resume_gives_the_same_parameters(tiny_run, tmp_path, capsys):
     cfg = FitConfig(iterations=10, **TINY)
     straight = _copy(tiny_run, tmp_path / "a")
     fit_template(straight.root, cfg, progress=False)
@@ -102,13 +105,37 @@ def test_resume_gives_the_same_parameters(tiny_run, tmp_path):
     assert fit_template(resumed.root, cfg, progress=False, stop_at=5) == {"step": 5}
     assert not (resumed.template / "field.pt").exists()
     fit_template(resumed.root, cfg, progress=False)
-    a = torch.load(straight.template / "checkpoint.pt", weights_only=False)
-    b = torch.load(resumed.template / "checkpoint.pt", weights_only=False)
+    a = torch.load(straight.template / "checkpoint.pt", weights_only=True)
+    b = torch.load(resumed.template / "checkpoint.pt", weights_only=True)
     assert a["step"] == b["step"] == 10
-    for k, v in a["field"].items():
-        torch.testing.assert_close(b["field"][k], v, rtol=0, atol=0)
-    with pytest.raises(SineError, match="--force"):
-        fit_template(resumed.root, FitConfig(iterations=10, **{**TINY, "seed": 4}), progress=False)
+    for k, v in a["state"]["field"]["state_dict"].items():
+        torch.testing.assert_close(b["state"]["field"]["state_dict"][k], v, rtol=0, atol=0)
+    # other options: the finished fit is redone (and says which options changed)
+    capsys.readouterr()
+    other = fit_template(
+        resumed.root, FitConfig(iterations=10, **{**TINY, "seed": 4}), progress=False
+    )
+    assert "seed: 3 -> 4" in capsys.readouterr().out and not other.get("skipped")
+
+
+def test_options_are_checked_before_any_work(tiny_run, tmp_path):
+    run = _copy(tiny_run, tmp_path / "v")
+    with pytest.raises(SineError, match="--iterations must be >= 1"):
+        fit_template(run.root, FitConfig(iterations=-5, **TINY), progress=False)
+    with pytest.raises(SineError, match="--lr-final-factor must be <= 1"):
+        fit_template(run.root, FitConfig(lr_final_factor=2.0, **TINY), progress=False)
+    assert not run.template.exists() and not (run.root / "template.partial").exists()
+
+
+def test_force_keeps_the_old_results_until_the_new_fit_finishes(tiny_run, tmp_path):
+    run = _copy(tiny_run, tmp_path / "f")
+    cfg = FitConfig(iterations=6, **TINY)
+    first = fit_template(run.root, cfg, progress=False)
+    assert fit_template(run.root, cfg, force=True, progress=False, stop_at=3) == {"step": 3}
+    assert read_json(run.template / "metrics.json") == first  # still the old results
+    assert (run.template / "field.pt").is_file()
+    fit_template(run.root, cfg, force=True, progress=False)
+    assert not (run.root / "template.partial").exists()
 
 
 def test_missing_proxy_mesh_says_run_recon(tiny_run, tmp_path):
