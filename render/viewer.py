@@ -92,8 +92,9 @@ def build_scene(
     highlight: int | None = None,
     frustum_size: float = 0.15,
 ) -> ViewerScene:
-    """Template mesh at its place, the edited mesh beside it (shifted along +x by 1.2 times the
-    template's bounding-box width), the cameras' frustums around the template.
+    """Template mesh at its place, the edited mesh beside it (shifted along x by 1.2 times the
+    template's bounding-box width, to the right on screen), the cameras' frustums around the
+    template.
 
     Meshes are (vertices [V, 3], triangles [T, 3], colours [V, 3] or None). The view looks at
     the midpoint of the meshes from the cameras' mean elevation, from the side (+y or -y) where
@@ -101,18 +102,21 @@ def build_scene(
     """
     tv, tt, tc = template
     scene = ViewerScene()
+    if cameras:
+        scene.front = side_view_direction(cameras)
     scene.geometries.append(o3d_mesh(tv, tt, tc))
     lo, hi = tv.min(0), tv.max(0)
     centre = 0.5 * (lo + hi)
     if edited is not None:
         ev, et, ec = edited
-        shift = np.array([1.2 * float(hi[0] - lo[0]), 0.0, 0.0])
+        # along +x when looking from -y, along -x from +y: the edit is on the right on screen
+        right = -1.0 if scene.front[1] > 0 else 1.0
+        shift = np.array([right * 1.2 * float(hi[0] - lo[0]), 0.0, 0.0])
         scene.toggled.append(o3d_mesh(np.asarray(ev) + shift, et, ec))
         centre = centre + 0.5 * shift
     scene.lookat = centre
     if cameras:
         scene.geometries.append(frustums_lineset(cameras, frustum_size, highlight))
-        scene.front = side_view_direction(cameras)
     return scene
 
 

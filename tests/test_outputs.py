@@ -340,3 +340,76 @@ def test_eval_reference_render_scores_high(tiny_fitted_run, tmp_path):
     write_json(gt / "cameras.json", CameraSet([frame]).to_dict())
     result = evaluate_views(scene, load_gt_views(gt, cams), progress=False)
     assert result["mean"]["psnr"] > 40.0 and result["mean"]["ssim"] > 0.99
+
+
+# ---- the edit path, through a stand-in for the editing side -------------------------------
+@pytest.fixture
+def fake_edit_run(tiny_fitted_run, tmp_path, monkeypatch):
+    """A copy of the tiny run with RUN/edits/tall (edit.json view 2), and an editing hook whose
+    scene is the template stretched 1.5x along z with red and blue swapped."""
+    import sys
+    import types
+
+    from edit.scene import TemplateScene, load_template_scene
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_fitted_run, run, ignore=shutil.ignore_patterns("edits", "features"))
+    write_json(run / "edits" / "tall" / "edit.json", {"view": 2})
+
+    class Tall(TemplateScene):
+        def mesh(self):
+            v, t = super().mesh()
+            return v * [1.0, 1.0, 1.5], t
+
+        def render_view(self, camera, chunk=16384):
+            out = super().render_view(camera, chunk)
+            return {**out, "rgb": out["rgb"][..., ::-1].copy()}
+
+        def colors_at(self, points, normals=None):
+            return super().colors_at(points, normals)[:, ::-1].copy()
+
+    def load_edit_scene(run_dir, name, strength, device):
+        base = load_template_scene(run_dir, device)
+        return Tall(**{**vars(base), "name": name})
+
+    hook = types.ModuleType("edit.editing_scene")
+    hook.load_edit_scene = load_edit_scene
+    monkeypatch.setitem(sys.modules, "edit.editing_scene", hook)
+    return run
+
+
+def test_outputs_of_an_edit(fake_edit_run, tmp_path):
+    run = str(fake_edit_run)
+    out = tmp_path / "cmp"
+    argv = ["render", run, "--edit", "tall", "--compare", "--orbit", "3", "--out", str(out)]
+    assert sine_cli.main(argv + ["--video", str(out / "cmp.mp4"), "--quiet"]) == 0
+    strip = read_image(out / "compare" / "0000.png")
+    assert strip.shape == (64, 130, 3)  # template | 2-pixel gap | edit
+    np.testing.assert_allclose(strip[:, 66:], strip[:, :64, ::-1], atol=1 / 255)
+    assert (video_info(out / "cmp.mp4")["width"], video_info(out / "cmp.mp4")["frames"]) == (130, 3)
+
+    mesh = tmp_path / "tall.ply"
+    assert sine_cli.main(["export", run, "--edit", "tall", "--out", str(mesh)]) == 0
+    proxy = trimesh.load(fake_edit_run / "proxy_mesh.ply", process=False)
+    np.testing.assert_allclose(
+        trimesh.load(mesh, process=False).vertices, proxy.vertices * [1, 1, 1.5], atol=1e-5
+    )
+
+    shot = tmp_path / "view.png"
+    argv = ["view", run, "--edit", "tall", "--screenshot", str(shot), "--width", "480"]
+    assert sine_cli.main(argv + ["--height", "270"]) == 0
+    image = read_image(shot)
+    regions, labels = _regions(image)
+    assert len(regions) == 2  # template and edited mesh, side by side
+    left, right = sorted(regions, key=lambda r: np.nonzero(labels == r)[1].mean())
+    height = [np.ptp(np.nonzero(labels == r)[0]) for r in (left, right)]
+    assert height[1] > 1.2 * height[0]  # the edited one (on the right) is the taller
+    left_rgb, right_rgb = image[labels == left].mean(0), image[labels == right].mean(0)
+    assert left_rgb[0] > left_rgb[2] and right_rgb[2] > right_rgb[0]  # red and blue swapped
+    orange = (image[..., 0] > 0.8) & (np.abs(image[..., 1] - 0.35) < 0.15) & (image[..., 2] < 0.2)
+    assert orange.sum() > 5  # the edit's view (edit.json "view": 2) is highlighted
+
+    report = tmp_path / "eval.json"
+    argv = ["eval", run, "--edit", "tall", "--split", "test", "--out", str(report), "--quiet"]
+    assert sine_cli.main(argv) == 0
+    assert json.loads(report.read_text())["scene"] == "tall"
