@@ -8,6 +8,7 @@ from pathlib import Path
 from recon.ingest import IngestConfig, ingest_capture
 from recon.rundir import RunDir
 from render.configs import add_options, from_args
+from render.io import require_directory
 
 DESCRIPTION = """\
 Reads a capture into a run directory: working images (undistorted, resized to --width),
@@ -32,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     cfg = from_args(IngestConfig, args)
-    rundir = RunDir(args.out)
+    rundir = RunDir(require_directory(args.out, "--out"))
     summary = ingest_capture(args.capture, rundir, cfg)
     if summary["skipped"]:
         print(

@@ -1,13 +1,16 @@
 """`sine recon`: turntable-aware reconstruction as idempotent stages.
 
 ingest -> masks -> poses -> normalize -> depth -> proxy_mesh -> report. Each stage reads and
-writes run-directory artefacts (atomically) and records itself in `recon_state.json`; a finished
-stage is skipped on the next run unless `force` is set. A stage that runs invalidates every
-stage after it. The per-stage results become `recon_report.json`.
+writes run-directory artefacts (atomically) and records itself and the options it used (the
+ReconConfig options whose help starts with its name, see `stage_options`) in
+`recon_state.json`; a finished stage is skipped on the next run unless `force` is set or its
+options changed (then it says which, and runs again). A stage that runs invalidates every stage
+after it. The per-stage results become `recon_report.json`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,11 +20,13 @@ import numpy as np
 
 from recon.rundir import RunDir
 from render.cameras import Camera, CameraSet
-from render.configs import option, to_dict
+from render.configs import option, to_dict, validate
 from render.errors import SineError
 from render.io import atomic_path, read_depth, read_json, read_mask, write_depth, write_json
 
 STAGES = ("ingest", "masks", "poses", "normalize", "depth", "proxy_mesh", "report")
+# The prefix of a ReconConfig option's help text names the stage it belongs to.
+_HELP_PREFIX = {"proxy_mesh": "proxy"}
 
 
 @dataclass
@@ -29,13 +34,15 @@ class ReconConfig:
     """Options of `sine recon` (besides the ingest options)."""
 
     mask_border_fraction: float = option(
-        0.04, "masks: width of the image border sampled for backdrop colours"
+        0.04, "masks: width of the image border sampled for backdrop colours", low=0.0, high=0.5
     )
     mask_lightness_weight: float = option(
-        0.35, "masks: weight of Lab lightness in the colour-keying distance (hue/chroma weigh 1)"
+        0.35,
+        "masks: weight of Lab lightness in the colour-keying distance (hue/chroma weigh 1)",
+        low=0.0,
     )
     mask_grabcut_iterations: int = option(
-        4, "masks: GrabCut iterations after colour keying (0 = keying only)"
+        4, "masks: GrabCut iterations after colour keying (0 = keying only)", low=0
     )
     camera_model: str = option(
         "SIMPLE_PINHOLE",
@@ -50,29 +57,34 @@ class ReconConfig:
     sfm_max_image_size: int = option(
         1600,
         "poses: SIFT runs on the source images (more precise than the working ones) up to this width",
+        low=16,
     )
     exhaustive_below: int = option(
-        60, "poses: match all pairs below this many views, else a cyclic window"
+        60, "poses: match all pairs below this many views, else a cyclic window", low=0
     )
     sequential_overlap: int = option(
-        10, "poses: neighbours on each side matched in the cyclic window"
+        10, "poses: neighbours on each side matched in the cyclic window", low=1
     )
     min_registered_fraction: float = option(
-        0.7, "poses: fail when fewer views than this fraction register"
+        0.7, "poses: fail when fewer views than this fraction register", low=0.0, high=1.0
     )
     sfm_min_object_px: float = option(
         400.0,
         "poses: upsample the SfM images (bicubic) until the object's median bounding-box "
         "diagonal reaches this many pixels (0 = never upsample)",
+        low=0.0,
     )
-    sfm_max_upscale: float = option(2.0, "poses: largest SfM upsampling factor")
+    sfm_max_upscale: float = option(2.0, "poses: largest SfM upsampling factor", low=1.0)
     sfm_peak_threshold: float = option(
         0.002,
         "poses: SIFT peak (contrast) threshold; lower finds more, weaker features (small or "
         "low-contrast objects)",
+        low=0.0,
     )
     sfm_threads: int = option(
-        1, "poses: SfM threads; 1 = deterministic results, -1 = all cores (faster, results vary)"
+        1,
+        "poses: SfM threads; 1 = deterministic results, -1 = all cores (faster, results vary)",
+        low=-1,
     )
     sfm_affine_shape: bool = option(
         False, "poses: SIFT with affine shape estimation (slower; wide baselines)"
@@ -86,9 +98,9 @@ class ReconConfig:
         "poses: a final robust bundle adjustment with tight tolerances after filtering "
         "points with large reprojection error or small triangulation angle",
     )
-    seed: int = option(0, "poses: random seed of SfM")
+    seed: int = option(0, "poses: random seed of SfM", low=0)
     target_radius: float = option(
-        0.85, "normalize: radius of the object's bounding sphere in run units"
+        0.85, "normalize: radius of the object's bounding sphere in run units", low=0.01
     )
     depth_method: str = option(
         "auto",
@@ -98,12 +110,16 @@ class ReconConfig:
         choices=["auto", "dataset", "visual_hull", "visual_hull+stereo"],
     )
     stereo_max_behind: float = option(
-        0.15, "depth: stereo may lie at most this far (run units) behind the hull surface"
+        0.15,
+        "depth: stereo may lie at most this far (run units) behind the hull surface",
+        low=0.0,
     )
-    hull_resolution: int = option(160, "depth: visual-hull voxels along the longest side")
-    hull_tolerance: int = option(1, "depth: views allowed to disagree when carving the visual hull")
-    tsdf_voxel_size: float = option(1 / 256, "proxy: TSDF voxel size in run units")
-    tsdf_trunc_voxels: float = option(3.0, "proxy: TSDF truncation in voxels")
+    hull_resolution: int = option(160, "depth: visual-hull voxels along the longest side", low=8)
+    hull_tolerance: int = option(
+        1, "depth: views allowed to disagree when carving the visual hull", low=0
+    )
+    tsdf_voxel_size: float = option(1 / 256, "proxy: TSDF voxel size in run units", low=1e-5)
+    tsdf_trunc_voxels: float = option(3.0, "proxy: TSDF truncation in voxels", low=0.5)
     proxy_close_with_hull: bool = option(
         True,
         "proxy: close what no view sees by fusing the visual hull, ray cast from virtual views "
@@ -112,9 +128,25 @@ class ReconConfig:
     min_component: float = option(
         0.02,
         "proxy: keep connected parts with at least this fraction of the largest part's triangles",
+        low=0.0,
+        high=1.0,
     )
-    target_triangles: int = option(40_000, "proxy: quadric decimation target triangle count")
-    contact_sheet_columns: int = option(6, "report: thumbnails per row in the contact sheet")
+    target_triangles: int = option(40_000, "proxy: quadric decimation target triangle count", low=4)
+    contact_sheet_columns: int = option(6, "report: thumbnails per row in the contact sheet", low=1)
+
+
+def stage_options(cfg: ReconConfig, stage: str, ignore_poses: bool = False) -> dict:
+    """The options `stage` depends on: the ReconConfig fields whose help starts with
+    "<stage>:" (proxy_mesh: "proxy:"), and --ignore-poses for the poses."""
+    prefix = _HELP_PREFIX.get(stage, stage) + ":"
+    options = {
+        f.name: getattr(cfg, f.name)
+        for f in dataclasses.fields(cfg)
+        if f.metadata.get("help", "").startswith(prefix)
+    }
+    if stage == "poses":
+        options["ignore_poses"] = ignore_poses
+    return options
 
 
 class Pipeline:
@@ -136,12 +168,27 @@ class Pipeline:
         for name in later:
             self.state["stages"].pop(name, None)
         self.state["stages"][stage] = {"done": True, "seconds": round(seconds, 3), **info}
+        if stage != "ingest":  # ingest keeps its own options (captures.json)
+            options = stage_options(self.cfg, stage, self.ignore_poses)
+            self.state.setdefault("options", {})[stage] = options
         write_json(self.state_path, self.state)
+
+    def _changed(self, stage: str) -> list[str]:
+        """Options of a finished stage that differ from the ones given now (a state written
+        before options were recorded counts as unchanged)."""
+        from recon.training import changed_options
+
+        old = self.state.get("options", {}).get(stage)
+        new = stage_options(self.cfg, stage, self.ignore_poses)
+        return [] if old is None else changed_options(old, new)
 
     def run_stage(self, stage: str, fn, *args) -> dict:
         if self._done(stage) and not self.force:
-            print(f"[recon] {stage}: done already (use --force to redo)")
-            return self.state["stages"][stage]
+            changes = self._changed(stage)
+            if not changes:
+                print(f"[recon] {stage}: done already (use --force to redo)")
+                return self.state["stages"][stage]
+            print(f"[recon] {stage}: options changed ({'; '.join(changes)}): running it again")
         t0 = time.perf_counter()
         info = fn(*args) or {}
         self._record(stage, info, time.perf_counter() - t0)
@@ -394,10 +441,14 @@ class Pipeline:
 
 
 def run_recon(capture: Path | None, run: RunDir, cfg: ReconConfig, ingest_cfg=None) -> dict:
-    """Runs every stage (skipping finished ones unless ingest_cfg.force); returns the report."""
+    """Runs every stage (skipping finished ones unless ingest_cfg.force or their options
+    changed); returns the report."""
     from recon.ingest import IngestConfig, ingest_capture
+    from render.io import require_directory
 
-    ingest_cfg = ingest_cfg or IngestConfig()
+    validate(cfg)
+    ingest_cfg = validate(ingest_cfg or IngestConfig())
+    require_directory(run.root, "--out")
     pipe = Pipeline(run, cfg, force=ingest_cfg.force, ignore_poses=ingest_cfg.ignore_poses)
     if capture is not None:
         t0 = time.perf_counter()

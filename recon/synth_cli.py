@@ -33,8 +33,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from recon.rundir import RunDir
     from recon.synth import SynthConfig, synthesize
+    from render.io import require_directory
 
     cfg = from_args(SynthConfig, args)
+    require_directory(cfg.out, "--out")
     summary = synthesize(cfg, progress=not args.quiet)
     RunDir(cfg.out).append_config("synth", cfg)
     edits = ", ".join(summary["edits"]) or "none"

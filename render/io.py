@@ -40,6 +40,15 @@ def atomic_path(path: str | os.PathLike):
             os.remove(tmp)
 
 
+def require_directory(path: str | os.PathLike, option: str = "--out") -> Path:
+    """`path` as a folder to write into: fine when missing or a folder; a SineError when it names
+    an existing file."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise SineError(f"{option} {path} is an existing file; give a folder (new or existing)")
+    return path
+
+
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)

@@ -118,8 +118,12 @@ def test_resume_gives_the_same_parameters(tiny_run, tmp_path, capsys):
     assert "seed: 3 -> 4" in capsys.readouterr().out and not other.get("skipped")
 
 
-def test_options_are_checked_before_any_work(tiny_run, tmp_path):
+def test_options_are_checked_before_any_work(tiny_run, tmp_path, capsys):
+    from sine_cli import main
+
     run = _copy(tiny_run, tmp_path / "v")
+    assert main(["fit", str(run.root), "--iterations", "-5", "--force", "--quiet"]) == 2
+    assert "--iterations must be >= 1 (got -5)" in capsys.readouterr().err
     with pytest.raises(SineError, match="--iterations must be >= 1"):
         fit_template(run.root, FitConfig(iterations=-5, **TINY), progress=False)
     with pytest.raises(SineError, match="--lr-final-factor must be <= 1"):
@@ -136,6 +140,18 @@ def test_force_keeps_the_old_results_until_the_new_fit_finishes(tiny_run, tmp_pa
     assert (run.template / "field.pt").is_file()
     fit_template(run.root, cfg, force=True, progress=False)
     assert not (run.root / "template.partial").exists()
+
+
+def test_cli_says_already_done_for_a_finished_fit(tiny_run, tmp_path, capsys):
+    from sine_cli import main
+
+    run = _copy(tiny_run, tmp_path / "cli")
+    args = ["fit", str(run.root), "--quiet", "--iterations", "3", "--batch-rays", "256"]
+    args += ["--log2-table", "12", "--max-resolution", "64", "--previews", "0"]
+    assert main(args) == 0
+    assert "fit: 3 steps in" in capsys.readouterr().out
+    assert main(args + ["--device", "cpu"]) == 0  # a runtime option: still done
+    assert "fit: already done with these options (3 steps" in capsys.readouterr().out
 
 
 def test_missing_proxy_mesh_says_run_recon(tiny_run, tmp_path):

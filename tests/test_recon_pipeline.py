@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
+from recon import synth
 from recon.ingest import IngestConfig
-from recon.pipeline import ReconConfig, run_recon
+from recon.pipeline import STAGES, ReconConfig, run_recon, stage_options
 from recon.rundir import RunDir
+from render.errors import SineError
 from render.io import read_json
-
-synth = pytest.importorskip("recon.synth")
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +23,7 @@ def capture(tmp_path_factory):
     return out
 
 
-def test_recon_known_poses_dataset_depth_and_skip(capture, tmp_path):
+def test_recon_known_poses_dataset_depth_and_skip(capture, tmp_path, capsys):
     run = RunDir(tmp_path / "run")
     cfg = ReconConfig(target_triangles=5000, tsdf_voxel_size=1 / 128)
     report = run_recon(capture, run, cfg, IngestConfig(width=160))
@@ -39,6 +41,28 @@ def test_recon_known_poses_dataset_depth_and_skip(capture, tmp_path):
     state = read_json(run.root / "recon_state.json")
     run_recon(capture, run, cfg, IngestConfig(width=160))
     assert read_json(run.root / "recon_state.json") == state
+    # a changed option redoes its stage (and the ones after it), naming the change
+    capsys.readouterr()
+    smaller = dataclasses.replace(cfg, target_triangles=2000)
+    report = run_recon(capture, run, smaller, IngestConfig(width=160))
+    out = capsys.readouterr().out
+    assert "proxy_mesh: options changed (target_triangles: 5000 -> 2000)" in out
+    assert "[recon] depth: done already" in out and report["proxy_triangles"] <= 2000
+    new = read_json(run.root / "recon_state.json")
+    assert new["stages"]["depth"] == state["stages"]["depth"]
+    with pytest.raises(SineError, match="--target-triangles must be >= 4"):
+        run_recon(capture, run, dataclasses.replace(cfg, target_triangles=0))
+    (tmp_path / "file").write_text("")
+    with pytest.raises(SineError, match="is an existing file"):
+        run_recon(capture, RunDir(tmp_path / "file"), cfg)
+
+
+def test_every_recon_option_belongs_to_a_stage():
+    cfg = ReconConfig()
+    owned = [name for stage in STAGES[1:] for name in stage_options(cfg, stage)]
+    fields = [f.name for f in dataclasses.fields(ReconConfig)]
+    assert sorted(set(owned) - {"ignore_poses"}) == sorted(fields)
+    assert len(owned) - 1 == len(fields)  # each option in exactly one stage
 
 
 def test_recon_visual_hull_depth_when_capture_has_no_depth(capture, tmp_path):
