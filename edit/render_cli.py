@@ -30,7 +30,7 @@ class RenderConfig:
     views: str | None = option(
         None, "render the capture's views of a split", choices=["train", "test", "all"]
     )
-    width: int | None = option(None, "image width (height keeps the aspect); default: the path's")
+    width: int | None = option(None, "image width, the height keeps the aspect (None: the path's)")
     video: Path | None = option(None, "also write the frames as this MP4")
     fps: float = option(24.0, "video frames per second")
     depth: bool = option(False, "also write colour-mapped depth images (DIR/depth/)")
