@@ -76,7 +76,7 @@ def main() -> None:
 
     from edit.masks_cli import FeatureMapRenderer, MasksConfig, view_image
     from edit.semantic_masks import SemanticMaskConfig, SemanticMasks
-    from recon.features import FeaturesConfig, distill_features
+    from edit.feature_field_fit import FeaturesConfig, distill_features
     from recon.fit import FitConfig, fit_template
     from recon.ingest import IngestConfig
     from recon.pipeline import ReconConfig, run_recon

@@ -1,5 +1,6 @@
-"""`sine` subcommands of the editing side: masks (semantic masks), snapshot and target (a view
-to edit, 2D editing targets), render/export/view/eval (outputs) and demo (built by `sine_cli`)."""
+"""`sine` subcommands of the editing side: features (DINO feature field), masks (semantic
+masks), snapshot and target (a view to edit, 2D editing targets), render/export/view/eval
+(outputs) and demo (built by `sine_cli`)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from edit import (
     demo,
     eval_cli,
     export_cli,
+    features_cli,
     masks_cli,
     render_cli,
     snapshot_cli,
@@ -14,4 +16,14 @@ from edit import (
     view_cli,
 )
 
-MODULES = (masks_cli, snapshot_cli, target_cli, render_cli, export_cli, view_cli, eval_cli, demo)
+MODULES = (
+    features_cli,
+    masks_cli,
+    snapshot_cli,
+    target_cli,
+    render_cli,
+    export_cli,
+    view_cli,
+    eval_cli,
+    demo,
+)

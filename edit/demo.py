@@ -38,7 +38,7 @@ class DemoConfig:
 
 def run_demo(cfg: DemoConfig) -> dict:
     from edit.masks_cli import MasksConfig, semantic_masks
-    from recon.features import FeaturesConfig, distill_features
+    from edit.feature_field_fit import FeaturesConfig, distill_features
     from recon.fit import FitConfig, fit_template
     from recon.ingest import IngestConfig
     from recon.pipeline import ReconConfig, run_recon

@@ -6,8 +6,9 @@ Default weights: the DINOv2 ViT-S/14 backbone inside the ONNX file shipped by th
 checkpoints (timm-like keys) and Hugging Face `Dinov2Model` state dicts load from a local file.
 
 `Dino` wraps a backbone with the feature API the method needs (Splice / SINE): `cls`, `keys`,
-`self_similarity`, `patch_features`, all differentiable w.r.t. the input image; `extract` and
-`sample_features` serve the feature-field distillation.
+`self_similarity`, `patch_features`, all differentiable w.r.t. the input image; `extract` serves
+the feature-field distillation (`edit.feature_field_fit`, which also holds the bilinear lookup of
+the patch features and uses `render.feature_field.fit_pca`).
 """
 
 from __future__ import annotations
@@ -541,7 +542,7 @@ class Dino(nn.Module):
     ) -> torch.Tensor:
         """Features of many HWC float images (one size) on one grid, no graph: [N, D, h, w] (CPU).
 
-        For distillation into a feature field: pair with `sample_features` at pixel coordinates.
+        For distillation into a feature field (`edit.feature_field_fit.bilinear_lookup`).
         """
         from tqdm import tqdm
 
@@ -557,48 +558,6 @@ class Dino(nn.Module):
             batch = torch.from_numpy(np.stack(images[i : i + batch_size])).permute(0, 3, 1, 2)
             out.append(self.patch_features(batch, size=size, facet=facet).cpu())
         return torch.cat(out)
-
-
-def sample_features(
-    features: torch.Tensor, pixels: torch.Tensor, image_size: tuple[int, int]
-) -> torch.Tensor:
-    """Bilinear samples of dense features at pixel coordinates.
-
-    features: [B, C, h, w] covering a whole image of `image_size` = (H, W);
-    pixels: [B, N, 2] or [N, 2] (x, y) in pixels, the centre of pixel (row i, col j) at (j+.5, i+.5).
-    Returns [B, N, C] (or [N, C] for [N, 2] pixels with B = 1).
-    """
-    squeeze = pixels.dim() == 2
-    if squeeze:
-        pixels = pixels[None].expand(features.shape[0], -1, -1)
-    height, width = image_size
-    scale = torch.tensor([2.0 / width, 2.0 / height], device=pixels.device)
-    grid = (pixels.float() * scale - 1.0)[:, :, None, :]  # [B, N, 1, 2]
-    out = F.grid_sample(
-        features,
-        grid.to(features),
-        mode="bilinear",
-        padding_mode="border",
-        align_corners=False,
-    )  # [B, C, N, 1]
-    out = out[..., 0].transpose(1, 2)  # [B, N, C]
-    return out[0] if squeeze and out.shape[0] == 1 else out
-
-
-def pca_basis(
-    features: torch.Tensor, dim: int, max_samples: int = 100_000, seed: int = 0
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """PCA of dense features [N, C, h, w] (e.g. from `extract`): mean [C], components [dim, C].
-
-    Project with `(f - mean) @ components.T` to distil fewer channels into a feature field.
-    """
-    flat = features.permute(0, 2, 3, 1).reshape(-1, features.shape[1]).float()  # [M, C]
-    if len(flat) > max_samples:
-        g = torch.Generator().manual_seed(seed)
-        flat = flat[torch.randperm(len(flat), generator=g)[:max_samples]]
-    mean = flat.mean(0)
-    _, _, v = torch.linalg.svd(flat - mean, full_matrices=False)  # v: [C, C]
-    return mean, v[:dim]
 
 
 def load_dino(

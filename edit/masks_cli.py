@@ -140,7 +140,7 @@ class FeatureMapRenderer:
     at `render_scale` of the camera's size, upsampled bilinearly to it."""
 
     def __init__(self, run_dir, cfg: MasksConfig | None = None):
-        from recon.features import load_features
+        from edit.feature_field_fit import load_features
         from render.device import pick_device
 
         self.cfg = cfg or MasksConfig()

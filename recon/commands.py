@@ -2,6 +2,6 @@
 
 from __future__ import annotations
 
-from recon import features_cli, fit_cli, ingest_cli, recon_cli, synth_cli
+from recon import fit_cli, ingest_cli, recon_cli, synth_cli
 
-MODULES = (synth_cli, ingest_cli, recon_cli, fit_cli, features_cli)
+MODULES = (synth_cli, ingest_cli, recon_cli, fit_cli)

@@ -18,7 +18,6 @@ from torch import nn
 
 from render import volume
 from render.hashgrid import HashGrid, HashGridConfig
-from render.renderer import FieldQuery
 from render.template_field import mlp
 
 
@@ -86,16 +85,19 @@ class FeatureField(nn.Module):
         ]
 
 
-def feature_query(template: nn.Module, features: FeatureField) -> FieldQuery:
-    """A FieldQuery for `render.renderer`: the frozen template's density + a "feat" channel
-    (every sample queries the feature field; `render_feature_map` keeps the top-k only)."""
-
-    def query(points: torch.Tensor, dirs: torch.Tensor) -> dict[str, torch.Tensor]:
-        with torch.no_grad():
-            sigma, geo = template.geometry(points)  # [M], [M, G]
-        return {"sigma": sigma, "feat": features(points, geo)}
-
-    return query
+def fit_pca(
+    x: torch.Tensor, dim: int, max_samples: int = 100_000, seed: int = 0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """PCA of feature rows x [M, C] (in float64; at most `max_samples` random rows, seeded):
+    mean [C] and the `dim` leading components [dim, C] (orthonormal rows), float32: the basis
+    of `FeatureField.set_basis`."""
+    x = x.double()
+    if len(x) > max_samples:
+        g = torch.Generator().manual_seed(seed)
+        x = x[torch.randperm(len(x), generator=g)[:max_samples]]
+    mean = x.mean(0)
+    _, _, v = torch.linalg.svd(x - mean, full_matrices=False)  # [C, C]
+    return mean.float(), v[:dim].float()
 
 
 @dataclass

@@ -156,12 +156,3 @@ def render_image(
     out["z"] = out["depth"] * camera.z_per_unit_distance().reshape(h, w)
     out["samples_per_pixel"] = np.float32(int(res["samples"]) / (h * w))
     return out
-
-
-def field_query_fn(field, **kwargs) -> FieldQuery:
-    """Adapts a module with forward(x, d) -> dict into a FieldQuery (dropping geo_feat)."""
-
-    def query(points: torch.Tensor, dirs: torch.Tensor) -> dict[str, torch.Tensor]:
-        return field(points, dirs, **kwargs)
-
-    return query

@@ -8,10 +8,10 @@ import shutil
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 from feature_run_helpers import TINY_FEATURES, tiny_feature_run
 
-from edit.dino import sample_features
-from recon.features import (
+from edit.feature_field_fit import (
     FeaturesConfig,
     bilinear_lookup,
     crop_to_box,
@@ -22,7 +22,13 @@ from recon.features import (
 )
 from recon.rundir import RunDir
 from render.errors import SineError
-from render.feature_field import FeatureField, FeatureFieldConfig, pca_rgb, render_feature_map
+from render.feature_field import (
+    FeatureField,
+    FeatureFieldConfig,
+    fit_pca,
+    pca_rgb,
+    render_feature_map,
+)
 from render.io import read_json, read_yaml
 
 
@@ -38,12 +44,10 @@ def test_bilinear_lookup_hand_values_and_grid_sample():
     maps = torch.randn(3, 5, 7, 4, generator=g)
     view = torch.tensor([0, 2, 1, 2, 0])
     xy = torch.rand(5, 2, generator=g) * torch.tensor([70.0, 50.0])
-    ref = torch.stack(
-        [
-            sample_features(maps[v].permute(2, 0, 1)[None], p[None], (50, 70))[0]
-            for v, p in zip(view, xy, strict=True)
-        ]
-    )
+    grid = (xy * torch.tensor([2 / 70, 2 / 50]) - 1)[:, None, None, :]  # [5, 1, 1, 2]
+    ref = F.grid_sample(
+        maps[view].permute(0, 3, 1, 2), grid, padding_mode="border", align_corners=False
+    )[:, :, 0, 0]  # [5, 4]
     boxes = torch.tensor([[0, 0, 70, 50.0]]).repeat(3, 1)
     assert torch.allclose(bilinear_lookup(maps, view, xy, boxes), ref, atol=1e-5)
 
@@ -81,6 +85,19 @@ def test_pca_basis_project_decode_roundtrip():
     assert torch.allclose(field.decode(field.project(flat)), flat, atol=1e-4)  # 3-dim data: exact
 
 
+def test_fit_pca_recovers_a_plane():
+    g = torch.Generator().manual_seed(0)
+    coeff = torch.randn(300, 2, generator=g) * torch.tensor([3.0, 1.0])  # [M, 2]
+    basis = torch.linalg.qr(torch.randn(8, 2, generator=g))[0].T  # [2, 8] orthonormal rows
+    x = coeff @ basis + 5.0  # [M, 8] on a plane through (5, ..., 5)
+    mean, comps = fit_pca(x, 2)
+    torch.testing.assert_close(mean, x.mean(0))
+    # the components span the plane: projecting the basis onto them keeps its length
+    torch.testing.assert_close((basis @ comps.T).norm(dim=1), torch.ones(2), atol=1e-4, rtol=0)
+    sub_mean, _ = fit_pca(x, 2, max_samples=50, seed=1)  # a seeded subset of the rows
+    assert not torch.allclose(sub_mean, mean) and torch.equal(sub_mean, fit_pca(x, 2, 50, 1)[0])
+
+
 def test_pca_rgb_range_and_background():
     c = np.zeros((2, 2, 4), np.float32)
     c[0, 0, :3] = [1, 2, 3]
@@ -114,7 +131,7 @@ def test_distillation_reduces_loss_and_writes_outputs(run_root):
 def test_rendered_features_beat_the_mean_and_an_untrained_field(run_root):
     """On the training views the rendered features follow DINO's: centred cosine (the mean
     feature removed) well above a field predicting the mean feature (0) or an untrained one."""
-    from recon.features import evaluate
+    from edit.feature_field_fit import evaluate
     from recon.fit import load_views
 
     run = RunDir(run_root)
@@ -192,7 +209,7 @@ def test_missing_feature_field_is_a_clear_error(tmp_path):
 
 
 def test_dino_features_crop_the_object_and_fall_back_to_the_image(run_root, tmp_path):
-    from recon.features import dino_features
+    from edit.feature_field_fit import dino_features
     from recon.fit import load_views
 
     run = RunDir(run_root)

@@ -39,6 +39,7 @@ from render.feature_field import (
     FeatureField,
     FeatureFieldConfig,
     composite_features,
+    fit_pca,
     pca_rgb,
     render_feature_map,
     top_k_samples,
@@ -240,13 +241,7 @@ def foreground_pca(features: torch.Tensor, masks: list, dim: int, seed: int = 0)
         cover = F.adaptive_avg_pool2d(torch.from_numpy(m).float()[None, None], (h, w))[0, 0]
         keep = cover.reshape(-1) > 0.25
         sel.append(flat[i][keep] if keep.any() else flat[i])
-    x = torch.cat(sel).double()  # [M, C]
-    if len(x) > 100_000:
-        g = torch.Generator().manual_seed(seed)
-        x = x[torch.randperm(len(x), generator=g)[:100_000]]
-    mean = x.mean(0)
-    _, _, v = torch.linalg.svd(x - mean, full_matrices=False)  # [C, C]
-    return mean.float(), v[:dim].float()
+    return fit_pca(torch.cat(sel), dim, seed=seed)  # rows [M, C]
 
 
 def bilinear_lookup(

@@ -23,7 +23,7 @@ HELP = "distil DINO features into a feature field (RUN/features/)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from recon.features import FeaturesConfig
+    from edit.feature_field_fit import FeaturesConfig
 
     parser.add_argument("run", type=Path, help="run directory with a fitted template")
     parser.add_argument(
@@ -36,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from recon.features import FeaturesConfig, distill_features
+    from edit.feature_field_fit import FeaturesConfig, distill_features
 
     cfg = from_args(FeaturesConfig, args)
     m = distill_features(args.run, cfg, force=args.force, progress=not args.quiet)
