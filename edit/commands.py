@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from edit import (
     demo,
+    edit_cli,
     eval_cli,
     export_cli,
     features_cli,
@@ -21,6 +22,7 @@ MODULES = (
     masks_cli,
     snapshot_cli,
     target_cli,
+    edit_cli,
     render_cli,
     export_cli,
     view_cli,

@@ -8,8 +8,9 @@ From the template's rendering of the edited view and the user's target we build 
    background; the contour is not).
 2. **Lifting to 3D**: the proxy vertices visible in the edited view (projected depth agrees with
    the ray-cast depth of the proxy) and inside the editable region become handles: the vertex
-   keeps its camera depth and moves to the back-projection of its corresponded pixel. Visible
-   vertices outside the region are anchored where they are; hidden ones are free.
+   keeps its camera depth and moves to the back-projection of its corresponded pixel. Vertices
+   that project outside the region are anchored where they are (hidden ones too); hidden ones
+   behind the region are free, so the far side of the edited part follows.
 3. **ARAP**: Open3D `deform_as_rigid_as_possible` deforms the proxy so that handles reach their
    targets and anchors stay; the hidden side follows rigidly.
 4. `symmetric=True`: the proxy's mirror plane (best of candidate planes through the centroid) is
@@ -150,15 +151,23 @@ def lift_handles(
     target_alpha: np.ndarray,
     visibility_tol: float,
     contour_px: float = 3.0,
+    min_motion_px: float = 1.0,
 ) -> Handles:
-    """Visible vertices inside `region` [H, W] bool follow the correspondences at their depth;
-    visible vertices outside it are anchors."""
+    """Handles and anchors from the correspondences of view `camera` (see the module doc).
+
+    Visible vertices inside `region` [H, W] bool whose corresponded pixel moved by more than
+    `min_motion_px` follow it at their depth (handles). Every other vertex whose projection falls
+    outside the region is an anchor, hidden or not: the region's prism along the view is the only
+    space the edit may change, and a hidden side left free would swing about the visible one. The
+    rest (hidden behind the region, or visible in it with sub-pixel motion: flow noise) is free
+    or anchored respectively.
+    """
     visible, uv, z = visible_vertices(camera, vertices, proxy_depth, visibility_tol)
     h, w = region.shape
     px = np.clip(uv[:, 0].astype(int), 0, w - 1)
     py = np.clip(uv[:, 1].astype(int), 0, h - 1)
-    in_region = region[py, px]
-    anchors = np.nonzero(visible & ~in_region)[0]
+    in_image = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    in_region = in_image & region[py, px]
     ids = np.nonzero(visible & in_region)[0]
     src = uv[ids]
     dst = src + bilinear(flow, src)
@@ -167,9 +176,12 @@ def lift_handles(
     )[py[ids], px[ids]]
     dst[on_contour] = snap_to_contour(dst[on_contour], target_alpha, 2 * contour_px)
     # a correspondence that lands outside the target's object is a flow error: drop it
-    keep = bilinear(target_alpha[..., None].astype(np.float32), dst)[:, 0] > 0.25
-    ids, dst = ids[keep], dst[keep]
-    return Handles(ids, back_project(camera, dst, z[ids]), anchors)
+    lands = bilinear(target_alpha[..., None].astype(np.float32), dst)[:, 0] > 0.25
+    moves = np.linalg.norm(dst - src, axis=1) > min_motion_px
+    still = ids[~moves]
+    ids, dst = ids[lands & moves], dst[lands & moves]
+    anchors = np.concatenate([np.nonzero(~in_region)[0], still])
+    return Handles(ids, back_project(camera, dst, z[ids]), np.unique(anchors))
 
 
 # ---- symmetry -----------------------------------------------------------------------------
@@ -202,10 +214,10 @@ def mirror_handles(handles: Handles, vertices: np.ndarray, plane: np.ndarray) ->
     """Adds, for every handle, the vertex opposite it moved by the mirrored displacement (unless
     that vertex is already a handle or an anchor, or lies on the plane itself)."""
     taken = set(handles.ids.tolist()) | set(handles.anchor_ids.tolist())
-    dist, opposite = cKDTree(vertices).query(reflect(vertices[handles.ids], plane))
+    _, opposite = cKDTree(vertices).query(reflect(vertices[handles.ids], plane))
     n = plane[:3]
     new_ids, new_targets = [], []
-    for k, (j, dj) in enumerate(zip(opposite, dist, strict=True)):
+    for k, j in enumerate(opposite):
         if j in taken or j == handles.ids[k]:
             continue
         delta = handles.targets[k] - vertices[handles.ids[k]]

@@ -118,3 +118,13 @@ class Background(nn.Module):
 
     def forward(self) -> torch.Tensor:  # [3]
         return torch.sigmoid(self.logit) if self.learnable else self.color
+
+
+def freeze(module: nn.Module) -> nn.Module:
+    """Freezes a field's parameters (eval mode, no parameter gradients) while gradients still
+    flow through it to its inputs: a deformation in front of a frozen template learns through
+    the template's positions. Never wrap such a template in `torch.no_grad` instead."""
+    module.eval()
+    for p in module.parameters():
+        p.requires_grad_(False)
+    return module

@@ -1,0 +1,491 @@
+"""Geometric editing from one edited image (`sine edit RUN --mode geometry`; paper Sec. 3.2).
+
+Inputs: a run with a fitted template, the index K of the edited view and the target image (the
+user's edit of view K). Outputs in RUN/edits/NAME/:
+
+    target.png, target_mask.png, region.png   what the edit was learnt from (at the working size)
+    template_view.png                         the template's rendering of view K
+    prior_mesh.ply, prior_preview.png         the ARAP shape prior M_P (+ 4 views of it)
+    edit.json                                 view, mode, method and every option
+    checkpoint.pt                             resumable training state
+    edit_field.pt                             the learnt editing field (or the naive fine-tune)
+    metrics.json, log.json, previews/         losses, target-view fit, held-out previews
+
+Ours (`--method ours`): the editing field (F_dG, F'_dG, F_dT) in front of the frozen template,
+trained with L_geo = w_gp L_gp + L_gt + w_gr L_gr + w_cyc L_cyc + w_reg L_reg:
+- L_gt on rays of view K: photometric (C_o + C_e vs the target) + silhouette BCE;
+- L_gp: two-way Chamfer between F'_dG(proxy vertices) and M_P (the same random vertex subset
+  of both each step);
+- L_gr: smoothness of F_dG at points around the edited surface;
+- L_cyc: F_dG and F'_dG invert each other at uniform points and surface points;
+- L_reg: F_dG does not move the surface the prior left in place, and view K's rays outside the
+  editable region keep the template's colours.
+Rays are sampled in the band around the union of F'_dG(proxy) and M_P (rebuilt every
+`rebuild_every` steps), so the edited surface is sampled before F'_dG has learnt to reach it.
+
+Naive baseline (`--method naive`): the template itself fine-tuned on view K with L_gt + L_reg
+(its rays outside the region keep their colours), no editing field, no priors, the template's
+proxy band for sampling.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from edit import geometry_losses as losses
+from edit.edit_inputs import difference_region, read_region, read_target
+from edit.editing_field import EditingField, combine, edited_query, warp_vertices
+from edit.editing_scene import scene_from_folder
+from edit.shape_prior import PriorMesh, build_prior_mesh
+from recon.fit import load_fitted, make_sampler, psnr
+from recon.rundir import RunDir
+from recon.training import Trainer
+from render.configs import option, to_dict
+from render.device import pick_device, torch_threads
+from render.errors import SineError
+from render.io import atomic_path, load_torch, save_torch, write_image, write_json, write_mask
+from render.raycast import MeshRaycaster
+from render.renderer import render_image, render_rays
+from render.sampler import BandSampler, ProxyRaycaster
+from render.template_field import freeze
+
+METHODS = ("ours", "naive")
+
+
+@dataclass
+class GeometryEditConfig:
+    """Options of a geometric edit (`sine edit --mode geometry`)."""
+
+    method: str = option(
+        "ours", "ours (editing field + priors) or naive (fine-tune)", choices=list(METHODS)
+    )
+    iterations: int = option(600, "training steps")
+    batch_rays: int = option(1024, "rays of the edited view per step")
+    lr_deform: float = option(2e-3, "Adam learning rate of F_dG and F'_dG")
+    lr_texture_grid: float = option(1e-2, "Adam learning rate of F_dT's hash table")
+    lr_texture_mlp: float = option(1e-3, "Adam learning rate of F_dT's MLP")
+    lr_naive: float = option(1e-3, "naive baseline: learning rate of the template's table and MLPs")
+    lr_final_factor: float = option(0.1, "learning rates decay exponentially to this factor")
+    w_gp: float = option(0.03, "weight of the shape-prior Chamfer loss L_gp (paper: 0.03)")
+    w_gr: float = option(0.1, "weight of the deformation smoothness L_gr (paper: 0.1)")
+    w_cyc: float = option(10.0, "weight of the cycle loss L_cyc (paper: 10)")
+    w_reg: float = option(1.0, "weight of the regularisation L_reg outside the edited region")
+    w_silhouette: float = option(1.0, "weight of the silhouette BCE inside L_gt")
+    prior_points: int = option(2000, "proxy / prior vertices in L_gp per step")
+    cycle_points: int = option(1000, "points of L_cyc per step (the paper's M = 1000)")
+    smooth_points: int = option(1000, "points of L_gr per step")
+    anchor_points: int = option(1000, "unmoved surface points of L_reg per step")
+    jitter: float = option(0.01, "positional jitter (run units) of L_gr and of surface samples")
+    band_width: float = option(0.05, "half-width of the sampling band around the edited proxy")
+    rebuild_every: int = option(25, "steps between re-warping the proxy and rebuilding its BVH")
+    region_dilate: int = option(6, "pixels the automatic editable region is grown by")
+    symmetric: bool = option(False, "mirror the prior's handles across the proxy's mirror plane")
+    visibility_tol: float = option(0.02, "depth tolerance (run units) of visible proxy vertices")
+    arap_iterations: int = option(50, "ARAP iterations of the shape prior")
+    moved_tol: float = option(
+        0.01, "prior displacement (run units) below which a vertex is unedited"
+    )
+    checkpoint_every: int = option(100, "steps between checkpoints")
+    checkpoint_seconds: float = option(60.0, "seconds between checkpoints")
+    log_every: int = option(25, "steps between log entries")
+    previews: int = option(4, "held-out views rendered as previews at the end (0: none)")
+    seed: int = option(0, "random seed")
+    device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
+    threads: int = option(0, "torch CPU threads (0: torch's default)")
+
+    def validate(self) -> None:
+        positive = (
+            "iterations",
+            "batch_rays",
+            "prior_points",
+            "cycle_points",
+            "smooth_points",
+            "anchor_points",
+            "rebuild_every",
+            "checkpoint_every",
+            "log_every",
+            "arap_iterations",
+        )
+        for name in positive:
+            if getattr(self, name) < 1:
+                raise SineError(f"--{name.replace('_', '-')} must be >= 1")
+        for name in (
+            "w_gp",
+            "w_gr",
+            "w_cyc",
+            "w_reg",
+            "w_silhouette",
+            "jitter",
+            "region_dilate",
+            "previews",
+            "moved_tol",
+        ):
+            if getattr(self, name) < 0:
+                raise SineError(f"--{name.replace('_', '-')} must be >= 0")
+        for name in ("lr_deform", "lr_texture_grid", "lr_texture_mlp", "lr_naive", "band_width"):
+            if not getattr(self, name) > 0:
+                raise SineError(f"--{name.replace('_', '-')} must be > 0")
+        if not 0 < self.lr_final_factor <= 1:
+            raise SineError("--lr-final-factor must be in (0, 1]")
+        if self.method not in METHODS:
+            raise SineError(f"--method must be one of {', '.join(METHODS)}")
+
+
+RUNTIME_KEYS = (
+    "device",
+    "threads",
+    "previews",
+    "log_every",
+    "checkpoint_every",
+    "checkpoint_seconds",
+)
+
+
+# ---- preparation --------------------------------------------------------------------------
+@dataclass
+class EditSetup:
+    """Everything an edit trains from, prepared once (and written to the edit's folder)."""
+
+    camera: object  # render.cameras.Camera of view K
+    target_rgb: np.ndarray  # [H, W, 3]
+    target_alpha: np.ndarray  # [H, W] {0, 1}
+    template_rgb: np.ndarray  # [H, W, 3] template rendering of view K
+    template_alpha: np.ndarray  # [H, W]
+    region: np.ndarray  # [H, W] bool, editable
+    proxy_vertices: np.ndarray  # [V, 3]
+    triangles: np.ndarray  # [T, 3]
+    prior: PriorMesh | None
+
+
+def pick_view(run: RunDir, view: int):
+    frames = run.load_cameras().frames
+    if not 0 <= view < len(frames):
+        raise SineError(f"--view {view} is out of range: the run has views 0..{len(frames) - 1}")
+    return frames[view]
+
+
+def prepare(
+    run: RunDir, out: Path, view: int, target, mask, region, cfg, field, background, sampler, device
+) -> EditSetup:
+    camera = pick_view(run, view)
+    size = (camera.width, camera.height)
+    bg = background().detach().cpu().numpy()
+    tgt = read_target(target, size, mask, bg)
+    rendered = render_image(camera, field, sampler, background, device=device)
+    t_rgb, t_alpha = np.clip(rendered["rgb"], 0, 1), rendered["opacity"]
+    if region is not None:
+        editable = read_region(region, size)
+    else:
+        editable = difference_region(tgt, t_rgb, t_alpha, cfg.region_dilate)
+    proxy = sampler.raycaster
+    vertices, triangles = proxy.vertices.copy(), proxy.triangles.copy()
+    prior = None
+    if cfg.method == "ours":
+        depth = MeshRaycaster((vertices, triangles)).depth(camera)
+        prior = build_prior_mesh(
+            camera,
+            vertices,
+            triangles,
+            depth,
+            t_rgb,
+            t_alpha,
+            tgt.rgb,
+            tgt.silhouette,
+            editable,
+            cfg.visibility_tol,
+            cfg.symmetric,
+            cfg.arap_iterations,
+        )
+        save_prior(out, prior, run)
+    write_image(out / "target.png", tgt.rgb)
+    write_mask(out / "target_mask.png", tgt.silhouette)
+    write_mask(out / "region.png", editable)
+    write_image(out / "template_view.png", t_rgb)
+    return EditSetup(
+        camera, tgt.rgb, tgt.silhouette, t_rgb, t_alpha, editable, vertices, triangles, prior
+    )
+
+
+def save_prior(out: Path, prior: PriorMesh, run: RunDir) -> None:
+    """prior_mesh.ply and a preview of it from 4 views around the ring (shaded by normals)."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(prior.vertices, prior.triangles, process=False)
+    with atomic_path(out / "prior_mesh.ply") as tmp:
+        mesh.export(str(tmp), file_type="ply")
+    np.save(out / "prior_displacement.npy", prior.displacement.astype(np.float32))
+    frames = run.load_cameras().frames
+    caster = MeshRaycaster((prior.vertices, prior.triangles))
+    tiles = []
+    for k in np.linspace(0, len(frames), 4, endpoint=False).astype(int):
+        cam = frames[k]
+        hits = caster.cast_camera(cam)
+        light = np.abs(hits.normal @ np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8]))
+        moved = prior.displacement[prior.triangles[np.maximum(hits.triangle, 0)]].max(axis=1)
+        shade = np.where(hits.hit, 0.25 + 0.75 * light, 1.0)
+        tint = np.where((moved > 0.01) & hits.hit, 1.0, 0.0)
+        rgb = np.stack([shade, shade * (1 - 0.5 * tint), shade * (1 - 0.5 * tint)], axis=-1)
+        tiles.append(rgb.reshape(cam.height, cam.width, 3))
+    write_image(out / "prior_preview.png", np.concatenate(tiles, axis=1))
+
+
+# ---- the scene of an edit (shared with rendering) -----------------------------------------
+def load_edit_field(edit_dir: Path, device) -> dict:
+    path = Path(edit_dir) / "edit_field.pt"
+    if not path.is_file():
+        raise SineError(
+            f"{path} not found; run `sine edit` first (or it was interrupted: re-run it)"
+        )
+    return load_torch(path)
+
+
+def edited_sampler(
+    editing: EditingField, proxy_vertices, triangles, band: float, strength=1.0, extra=None
+) -> BandSampler:
+    """Band sampler around F'_dG(proxy) (united with `extra` vertices [V, 3] of the same
+    triangles, e.g. the prior mesh, when given)."""
+    warped = warp_vertices(editing.forward_deform, proxy_vertices, strength)
+    verts, tris = warped, triangles
+    if extra is not None:
+        verts = np.concatenate([warped, extra])
+        tris = np.concatenate([triangles, triangles + len(warped)])
+    return BandSampler(ProxyRaycaster((verts, tris), inflate=band), 16, 4)
+
+
+# ---- training -----------------------------------------------------------------------------
+def _image_rays(camera, device):
+    o, d = camera.rays()
+    return torch.from_numpy(o).to(device), torch.from_numpy(d).to(device)
+
+
+def run_geometry_edit(
+    run_dir,
+    view: int,
+    target,
+    name: str,
+    cfg: GeometryEditConfig | None = None,
+    mask=None,
+    region=None,
+    force: bool = False,
+    progress: bool = True,
+    stop_at: int | None = None,
+) -> dict:
+    """Learns a geometric edit into RUN/edits/NAME; returns its metrics (resumes when re-run)."""
+    cfg = cfg or GeometryEditConfig()
+    cfg.validate()
+    run = RunDir(run_dir)
+    run.require("cameras")
+    pick_view(run, view)
+    out = run.edit(name)
+    if out.exists() and not out.is_dir():
+        raise SineError(f"{out} exists and is not a folder")
+    device = pick_device(cfg.device)
+    with torch_threads(cfg.threads):
+        return _edit(run, out, view, target, mask, region, cfg, device, force, progress, stop_at)
+
+
+def _edit(run, out, view, target, mask, region, cfg, device, force, progress, stop_at) -> dict:
+    t_start = time.perf_counter()
+    settings = {
+        "mode": "geometry",
+        "view": view,
+        "target": str(target),
+        "mask": str(mask),
+        "region": str(region),
+        **to_dict(cfg),
+    }
+    trainer = Trainer(
+        out,
+        f"edit {out.name}",
+        settings,
+        RUNTIME_KEYS,
+        iterations=cfg.iterations,
+        seed=cfg.seed,
+        log_every=cfg.log_every,
+        checkpoint_every=cfg.checkpoint_every,
+        checkpoint_seconds=cfg.checkpoint_seconds,
+        force=force,
+        progress=progress,
+        advice="a lower --lr-deform (or --lr-naive)",
+    )
+    done = trainer.finished()
+    if done is not None:
+        return done
+    work = trainer.work_dir
+    work.mkdir(parents=True, exist_ok=True)
+
+    template, background, fit_cfg = load_fitted(run.root, device)
+    sampler = make_sampler(fit_cfg, run)
+    setup = prepare(
+        run, work, view, target, mask, region, cfg, template, background, sampler, device
+    )
+    write_json(work / "edit.json", settings)
+
+    torch.manual_seed(cfg.seed)
+    o_all, d_all = _image_rays(setup.camera, device)
+    tgt = torch.from_numpy(setup.target_rgb.reshape(-1, 3)).to(device)
+    sil = torch.from_numpy(setup.target_alpha.reshape(-1)).float().to(device)
+    outside = torch.from_numpy(~setup.region.reshape(-1)).to(device)
+    tmpl = torch.from_numpy(setup.template_rgb.reshape(-1, 3)).to(device)
+    edit_sampler = sampler
+    if cfg.method == "naive":
+        field = copy.deepcopy(template).train()
+        state = {"field": field}
+        groups = [{"params": list(field.parameters()), "lr": cfg.lr_naive, "name": "template"}]
+        query = field
+    else:
+        freeze(template)
+        editing = EditingField(template.grid.cfg).to(device)
+        tex = editing.texture
+        deform_params = list(editing.deform.parameters()) + list(
+            editing.forward_deform.parameters()
+        )
+        groups = [
+            {"params": deform_params, "lr": cfg.lr_deform, "name": "deform"},
+            {
+                "params": [tex.grid.table],
+                "lr": cfg.lr_texture_grid,
+                "eps": 1e-15,
+                "name": "texture_grid",
+            },
+            {"params": list(tex.mlp.parameters()), "lr": cfg.lr_texture_mlp, "name": "texture_mlp"},
+        ]
+        state = {"editing": editing, "prior_vertices": setup.prior.vertices}
+        query = edited_query(template, editing)
+        proxy_v = torch.from_numpy(setup.proxy_vertices).float().to(device)
+        prior_v = torch.from_numpy(setup.prior.vertices).float().to(device)
+        unmoved = prior_v[torch.from_numpy(~setup.prior.moved(cfg.moved_tol)).to(device)]
+        surface = torch.cat([proxy_v, prior_v])
+    trainer.start(state, groups, lr_final_factor=cfg.lr_final_factor)
+    gen = trainer.generator
+
+    def rebuild():
+        """The sampler of the edited space and the view-K rays that need the field."""
+        nonlocal edit_sampler
+        if cfg.method == "ours":
+            edit_sampler = edited_sampler(
+                editing,
+                setup.proxy_vertices,
+                setup.triangles,
+                cfg.band_width,
+                extra=setup.prior.vertices,
+            )
+        hits = edit_sampler.cast(o_all, d_all)
+        return hits, torch.nonzero(hits.hit | (sil > 0.5))[:, 0]
+
+    hits, pool = rebuild()
+
+    def pick(points, n):
+        return points[torch.randint(len(points), (n,), generator=gen).to(device)]
+
+    def jittered(points, n):
+        p = pick(points, n)
+        return p + cfg.jitter * torch.randn(p.shape, generator=gen).to(device)
+
+    def step(i: int) -> dict[str, torch.Tensor]:
+        nonlocal hits, pool
+        if cfg.method == "ours" and i % cfg.rebuild_every == 0 and i > 0:
+            hits, pool = rebuild()
+        idx = pick(pool, cfg.batch_rays)
+        res = render_rays(
+            query,
+            o_all[idx],
+            d_all[idx],
+            edit_sampler,
+            background,
+            hits=hits[idx],
+            perturb=True,
+            generator=gen,
+        )
+        pred = combine(res)
+        out_rays = outside[idx]
+        reg = losses.photometric(pred[out_rays], tmpl[idx][out_rays]) if out_rays.any() else 0
+        terms = {
+            "photometric": losses.photometric(pred, tgt[idx]),
+            "silhouette": cfg.w_silhouette * losses.silhouette_bce(res["opacity"], sil[idx]),
+        }
+        if cfg.method == "naive":
+            return {**terms, "reg": cfg.w_reg * (reg + 0 * pred.sum())}
+        deform, fwd = editing.deform, editing.forward_deform
+        sub = torch.randint(len(proxy_v), (cfg.prior_points,), generator=gen).to(device)
+        uniform = torch.rand(cfg.cycle_points // 2, 3, generator=gen).to(device) * 2 - 1
+        cyc_pts = torch.cat([uniform, jittered(surface, cfg.cycle_points - len(uniform))])
+        eps = cfg.jitter * torch.randn(cfg.smooth_points, 3, generator=gen).to(device)
+        if len(unmoved):
+            reg = reg + losses.displacement_l1(deform, jittered(unmoved, cfg.anchor_points))
+        return {
+            **terms,
+            "gp": cfg.w_gp * losses.chamfer(fwd(proxy_v[sub]), prior_v[sub]),
+            "cyc": cfg.w_cyc * losses.cycle(deform, fwd, cyc_pts),
+            "gr": cfg.w_gr
+            * losses.deformation_smoothness(deform, jittered(prior_v, cfg.smooth_points), eps),
+            "reg": cfg.w_reg * (reg + 0 * pred.sum()),
+        }
+
+    if not trainer.run(step, stop_at=stop_at):
+        return {"step": trainer.step}
+
+    # ---- save the result and score the edited view ----
+    if cfg.method == "naive":
+        save_torch(work / "edit_field.pt", {"method": "naive", "field": field.state_dict()})
+    else:
+        save_torch(
+            work / "edit_field.pt",
+            {"method": "ours", "editing": editing.state_dict(), "band_width": cfg.band_width},
+        )
+    scene = scene_from_folder(run, work, 1.0, device)
+    rendered = scene.render_view(setup.camera)
+    obj = (setup.target_alpha > 0.5) | (rendered["opacity"] > 0.5)
+    pred_sil = rendered["opacity"] > 0.5
+    tgt_sil = setup.target_alpha > 0.5
+    metrics = {
+        "method": cfg.method,
+        "view": view,
+        "edited_view_psnr": psnr(rendered["rgb"], setup.target_rgb),
+        "edited_view_psnr_object": psnr(rendered["rgb"][obj], setup.target_rgb[obj]),
+        "edited_view_silhouette_iou": float(
+            (pred_sil & tgt_sil).sum() / max((pred_sil | tgt_sil).sum(), 1)
+        ),
+        "iterations": trainer.step,
+        "train_seconds": trainer.seconds,
+        "total_seconds": time.perf_counter() - t_start,
+        "final_losses": {k: v for k, v in trainer.log[-1].items() if k not in ("step", "seconds")},
+        "device": str(device),
+    }
+    if setup.prior is not None:
+        plane = setup.prior.mirror_plane
+        metrics.update(
+            prior_handles=int(len(setup.prior.handle_ids)),
+            prior_anchors=int(len(setup.prior.anchor_ids)),
+            prior_max_displacement=float(setup.prior.displacement.max()),
+            prior_mirror_plane=None if plane is None else plane.tolist(),
+        )
+    write_image(
+        work / "edited_view.png",
+        np.concatenate([setup.template_rgb, rendered["rgb"], setup.target_rgb], axis=1),
+    )
+    write_previews(run, scene, work / "previews", cfg.previews, device)
+    write_json(work / "metrics.json", metrics)
+    trainer.publish()
+    return metrics
+
+
+def write_previews(run: RunDir, scene, folder: Path, n: int, device) -> None:
+    """Template | edit side by side for n views spread around the ring (test views first)."""
+    if n <= 0:
+        return
+    from edit.scene import load_scene
+
+    template = load_scene(run.root, None, device=str(device))
+    frames = run.load_cameras().frames
+    for k in np.linspace(0, len(frames), n, endpoint=False).astype(int):
+        cam = frames[k]
+        before = template.render_view(cam)["rgb"]
+        after = scene.render_view(cam)["rgb"]
+        write_image(folder / f"{Path(cam.name).stem}.png", np.concatenate([before, after], axis=1))
