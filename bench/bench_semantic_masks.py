@@ -74,9 +74,10 @@ def main() -> None:
     import cv2
     import torch
 
-    from edit.masks_cli import FeatureMapRenderer, MasksConfig, view_image
-    from edit.semantic_masks import SemanticMaskConfig, SemanticMasks
     from edit.feature_field_fit import FeaturesConfig, distill_features
+    from edit.feature_maps import FeatureMapRenderer
+    from edit.part_masks import view_image
+    from edit.semantic_masks import SemanticMaskConfig, SemanticMasks
     from recon.fit import FitConfig, fit_template
     from recon.ingest import IngestConfig
     from recon.pipeline import ReconConfig, run_recon
@@ -124,9 +125,7 @@ def main() -> None:
         c.name: read_label_map(synth_dir / "labels" / (Path(c.name).stem + ".png")) for c in cams
     }
     t0 = time.perf_counter()
-    render = FeatureMapRenderer(
-        run.root, MasksConfig(space=args.space, render_scale=args.render_scale)
-    )
+    render = FeatureMapRenderer(run.root, space=args.space, render_scale=args.render_scale)
     maps = {c.name: render(c) for c in cams}  # name -> (features [C, H, W], object [H, W])
     images = {c.name: view_image(run, c) for c in cams}
     seconds_render = (time.perf_counter() - t0) / len(cams)

@@ -37,8 +37,8 @@ class DemoConfig:
 
 
 def run_demo(cfg: DemoConfig) -> dict:
-    from edit.masks_cli import MasksConfig, semantic_masks
     from edit.feature_field_fit import FeaturesConfig, distill_features
+    from edit.part_masks import MasksConfig, semantic_masks
     from recon.fit import FitConfig, fit_template
     from recon.ingest import IngestConfig
     from recon.pipeline import ReconConfig, run_recon

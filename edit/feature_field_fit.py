@@ -31,7 +31,7 @@ import torch.nn.functional as F
 
 from recon.fit import load_fitted, load_views, make_sampler
 from recon.rundir import RunDir
-from recon.training import Trainer, progress_bar
+from recon.training import Trainer, loop_options, progress_bar
 from render.configs import from_json, option, to_dict, to_json, validate
 from render.device import pick_device, torch_threads
 from render.errors import SineError
@@ -365,11 +365,7 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
         "features",
         to_dict(cfg),
         _RUNTIME_KEYS,
-        iterations=cfg.iterations,
-        seed=cfg.seed,
-        log_every=cfg.log_every,
-        checkpoint_every=cfg.checkpoint_every,
-        checkpoint_seconds=cfg.checkpoint_seconds,
+        **loop_options(cfg),
         force=force,
         progress=progress,
         advice="lower learning rates (e.g. half of --lr-grid and --lr-mlp)",

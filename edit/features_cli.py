@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from render.configs import add_options, from_args
+from render.configs import add_training_arguments, from_args
 
 DESCRIPTION = """\
 Computes DINO patch features of every capture of RUN (cached in RUN/features/), then trains a
@@ -25,14 +24,7 @@ HELP = "distil DINO features into a feature field (RUN/features/)"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from edit.feature_field_fit import FeaturesConfig
 
-    parser.add_argument("run", type=Path, help="run directory with a fitted template")
-    parser.add_argument(
-        "--force", action="store_true", help="ignore existing checkpoints and start over"
-    )
-    parser.add_argument(
-        "--quiet", action="store_true", help="no progress bar, only the summary line"
-    )
-    add_options(parser, FeaturesConfig)
+    add_training_arguments(parser, FeaturesConfig, "run directory with a fitted template")
 
 
 def run(args: argparse.Namespace) -> int:

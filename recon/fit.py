@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from recon.rundir import RunDir
-from recon.training import Trainer
+from recon.training import Trainer, loop_options
 from render.configs import from_json, option, to_dict, to_json, validate
 from render.device import pick_device, torch_threads
 from render.errors import SineError
@@ -311,11 +311,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         "fit",
         to_dict(cfg),
         _RUNTIME_KEYS,
-        iterations=cfg.iterations,
-        seed=cfg.seed,
-        log_every=cfg.log_every,
-        checkpoint_every=cfg.checkpoint_every,
-        checkpoint_seconds=cfg.checkpoint_seconds,
+        **loop_options(cfg),
         force=force,
         progress=progress,
         advice="lower learning rates (e.g. half of --lr-grid and --lr-mlp)",

@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from render.configs import add_options, from_args
+from render.configs import add_training_arguments, from_args
 
 DESCRIPTION = """\
 Trains the template radiance field (hash grid + small MLPs) on RUN's images, masks and cameras,
@@ -24,16 +23,9 @@ HELP = "fit the template radiance field (RUN/template/)"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from recon.fit import FitConfig
 
-    parser.add_argument(
-        "run", type=Path, help="run directory (with cameras.json and proxy_mesh.ply)"
+    add_training_arguments(
+        parser, FitConfig, "run directory (with cameras.json and proxy_mesh.ply)"
     )
-    parser.add_argument(
-        "--force", action="store_true", help="ignore existing checkpoints and start over"
-    )
-    parser.add_argument(
-        "--quiet", action="store_true", help="no progress bar, only the summary line"
-    )
-    add_options(parser, FitConfig)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -12,7 +12,7 @@ import numpy as np
 from tqdm import tqdm
 
 from recon.rundir import RunDir
-from render.io import read_image, read_mask, write_image, write_json
+from render.io import contact_sheet, read_image, read_mask, write_image, write_json
 from render.raycast import MeshRaycaster
 
 STAGE_KEYS_SKIP = ("done", "seconds", "auto")
@@ -26,7 +26,7 @@ def proxy_silhouettes(run: RunDir, cameras) -> list[np.ndarray]:
     return [caster.cast_camera(cam).hit.reshape(cam.height, cam.width) for cam in cameras]
 
 
-def contact_sheet(images, masks, silhouettes, columns: int = 6, width: int = 200) -> np.ndarray:
+def outline_sheet(images, masks, silhouettes, columns: int = 6, width: int = 200) -> np.ndarray:
     """Thumbnails [H, W, 3] float: mask outline green, proxy silhouette outline magenta."""
     tiles = []
     for image, mask, sil in zip(images, masks, silhouettes, strict=True):
@@ -37,12 +37,7 @@ def contact_sheet(images, masks, silhouettes, columns: int = 6, width: int = 200
             contours, _ = cv2.findContours(small, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
             cv2.drawContours(tile, contours, -1, colour, 1)
         tiles.append(tile)
-    th = max(t.shape[0] for t in tiles)
-    tiles = [np.pad(t, ((0, th - t.shape[0]), (0, 0), (0, 0))) for t in tiles]
-    while len(tiles) % columns:
-        tiles.append(np.zeros_like(tiles[0]))
-    rows = [np.hstack(tiles[i : i + columns]) for i in range(0, len(tiles), columns)]
-    return np.vstack(rows)
+    return contact_sheet(tiles, columns, fill=0.0)
 
 
 def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -61,7 +56,7 @@ def write_report(run: RunDir, state: dict, columns: int = 6) -> dict:
         ious.append(mask_iou(mask, sil))
     images = [read_image(run.image_path(c.name)) for c in cams]
     sheet_path = run.root / "recon_contact_sheet.png"
-    write_image(sheet_path, np.clip(contact_sheet(images, masks, sils, columns), 0, 1))
+    write_image(sheet_path, np.clip(outline_sheet(images, masks, sils, columns), 0, 1))
 
     report: dict = {}
     for stage, info in state["stages"].items():

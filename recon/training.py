@@ -7,7 +7,7 @@ checkpoints (every `checkpoint_every` steps and every `checkpoint_seconds` of wa
 "already finished with these options" check.
 
     trainer = Trainer(run.root / "mystage", "mystage", to_dict(cfg), RUNTIME_KEYS,
-                      iterations=cfg.iterations, seed=cfg.seed, force=force)
+                      **loop_options(cfg), force=force)  # iterations=cfg.iterations, seed=...
     if (done := trainer.finished()) is not None:  # cheap: before any data is loaded
         return done                                # metrics.json + {"skipped": True}
     model = ...  # the stage's modules and data (caches may go into trainer.work_dir from now on)
@@ -73,6 +73,8 @@ from render.errors import SineError
 from render.io import load_torch, read_json, save_torch, write_json
 
 StepFn = Callable[[int], dict[str, torch.Tensor]]
+# The loop's own options, by the names a stage config gives them (see `loop_options`).
+LOOP_OPTIONS = ("iterations", "seed", "log_every", "checkpoint_every", "checkpoint_seconds")
 _RESERVED = ("optimizer", "scheduler", "generator")
 
 
@@ -82,6 +84,12 @@ def progress_bar(**kwargs) -> tqdm:
     if not sys.stderr.isatty():
         kwargs.setdefault("mininterval", 30.0)
     return tqdm(**kwargs)
+
+
+def loop_options(cfg: Any) -> dict:
+    """The Trainer keyword arguments a stage config holds under the same names (LOOP_OPTIONS):
+    `Trainer(directory, name, to_dict(cfg), RUNTIME_KEYS, **loop_options(cfg), ...)`."""
+    return {name: getattr(cfg, name) for name in LOOP_OPTIONS if hasattr(cfg, name)}
 
 
 def exponential_decay(final_factor: float, iterations: int) -> Callable[[int], float]:

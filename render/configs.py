@@ -74,6 +74,21 @@ def add_options(parser: argparse.ArgumentParser, cls: type, skip: tuple[str, ...
         group.add_argument(flag, **kwargs)
 
 
+def add_training_arguments(parser: argparse.ArgumentParser, cls: type, run_help: str) -> None:
+    """The arguments of a training stage's command: RUN, --force, --quiet and `cls`'s options."""
+    parser.add_argument("run", type=Path, help=run_help)
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="train again even when finished with these options (the old results stay until "
+        "the new run has finished)",
+    )
+    parser.add_argument(
+        "--quiet", action="store_true", help="no progress bar, only the summary line"
+    )
+    add_options(parser, cls)
+
+
 def _flag(f: dataclasses.Field) -> str:
     return f.metadata.get("flag") or "--" + f.name.replace("_", "-")
 

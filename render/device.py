@@ -28,14 +28,3 @@ def torch_threads(n: int):
         yield
     finally:
         torch.set_num_threads(before)
-
-
-def check_finite(loss: torch.Tensor, step: int, stage: str, checkpoint_dir) -> None:
-    """Stops training with a readable message when the loss turns NaN/inf (nothing is lost:
-    the last checkpoint in `checkpoint_dir` stays as it was)."""
-    if not torch.isfinite(loss):
-        raise SineError(
-            f"{stage} diverged at step {step} (the loss is {loss.item()}); the last checkpoint in "
-            f"{checkpoint_dir} is kept. Re-run with lower learning rates (--lr-grid, --lr-mlp) "
-            "and --force, or re-run as is to resume from that checkpoint."
-        )

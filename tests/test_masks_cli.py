@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from feature_run_helpers import tiny_feature_run
 
-from edit.masks_cli import FeatureMapRenderer, MasksConfig, resolve_view, semantic_masks
+from edit.feature_maps import FeatureMapRenderer
+from edit.part_masks import resolve_view, semantic_masks
 from recon.rundir import RunDir
 from render.errors import SineError
 from render.io import read_json, read_label_map, write_mask
@@ -68,6 +69,9 @@ def test_wrong_size_empty_or_off_object_region_is_an_error(run_root, tmp_path, c
     corner[:3, :3] = True  # background only
     with pytest.raises(SineError, match="does not touch the object"):
         semantic_masks(run_root, 0, corner, tmp_path / "o2", progress=False)
+    (tmp_path / "file").write_text("")
+    with pytest.raises(SineError, match="--out .* is an existing file"):
+        semantic_masks(run_root, 0, corner, tmp_path / "file", progress=False)
     assert not (tmp_path / "o" / "metrics.json").exists()
 
 
@@ -111,8 +115,8 @@ def test_half_scale_feature_maps_match_full_scale(run_root):
     import torch
 
     cam = RunDir(run_root).load_cameras().frames[2]
-    full, obj_full = FeatureMapRenderer(run_root, MasksConfig(render_scale=1.0))(cam)
-    half, obj_half = FeatureMapRenderer(run_root, MasksConfig(render_scale=0.5))(cam)
+    full, obj_full = FeatureMapRenderer(run_root, render_scale=1.0)(cam)
+    half, obj_half = FeatureMapRenderer(run_root, render_scale=0.5)(cam)
     assert half.shape == full.shape == (64, 64, 64) and obj_half.shape == (64, 64)  # [C, H, W]
     both = torch.from_numpy(obj_full & obj_half)
     assert (obj_full != obj_half).mean() < 0.05  # only edge pixels differ

@@ -1,0 +1,61 @@
+"""Feature maps of a run's distilled DINO feature field, one camera at a time.
+
+`FeatureMapRenderer` loads the frozen template, the feature field and the sampler once
+(`edit.feature_field_fit.load_features`) and renders any camera's feature map at a fraction of
+its size (DINO features are smooth: half size is ~4x faster for the same masks), upsampled
+bilinearly to the camera's size, with the template's opacity as the object mask.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from edit.feature_field_fit import load_features
+from render.device import pick_device
+from render.feature_field import render_feature_map
+
+
+class FeatureMapRenderer:
+    """camera -> (features [C, H, W] float32 tensor, object mask [H, W] bool numpy).
+
+    space: "centred" = the field's PCA coefficients (DINO features minus the object's mean
+    feature), "dino" = decoded DINO features; render_scale in (0, 1]: fraction of the camera's
+    size rendered; min_opacity: template opacity from which a pixel is on the object."""
+
+    def __init__(
+        self,
+        run_dir,
+        device: str = "auto",
+        space: str = "centred",
+        render_scale: float = 0.5,
+        min_opacity: float = 0.5,
+        chunk: int = 4096,
+    ):
+        self.device = pick_device(device)
+        self.space, self.render_scale = space, render_scale
+        self.min_opacity, self.chunk = min_opacity, chunk
+        self.template, self.field, self.sampler = load_features(run_dir, self.device)
+
+    def __call__(self, camera) -> tuple[torch.Tensor, np.ndarray]:
+        scale = min(max(self.render_scale, 0.0), 1.0)
+        w, h = max(1, round(camera.width * scale)), max(1, round(camera.height * scale))
+        small = camera.resized(w, h) if (w, h) != (camera.width, camera.height) else camera
+        out = render_feature_map(
+            small,
+            self.template,
+            self.field,
+            self.sampler,
+            chunk=self.chunk,
+            device=self.device,
+            decode=self.space == "dino",
+        )
+        feats = torch.from_numpy(out["features"]).permute(2, 0, 1)  # [C, h, w]
+        opacity = torch.from_numpy(out["opacity"])[None]  # [1, h, w]
+        if small is not camera:
+            size = (camera.height, camera.width)
+            feats = F.interpolate(feats[None], size=size, mode="bilinear", align_corners=False)[0]
+            opacity = F.interpolate(opacity[None], size=size, mode="bilinear", align_corners=False)
+            opacity = opacity[0]
+        return feats, (opacity[0] >= self.min_opacity).numpy()
