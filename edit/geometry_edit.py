@@ -246,11 +246,18 @@ def load_edit_field(edit_dir: Path, device) -> dict:
 
 
 def edited_sampler(
-    editing: EditingField, proxy_vertices, triangles, band: float, strength=1.0, extra=None
+    editing: EditingField,
+    proxy_vertices,
+    triangles,
+    band: float,
+    strength=1.0,
+    extra=None,
+    warped=None,
 ) -> BandSampler:
     """Band sampler around F'_dG(proxy) (united with `extra` vertices [V, 3] of the same
-    triangles, e.g. the prior mesh, when given)."""
-    warped = warp_vertices(editing.forward_deform, proxy_vertices, strength)
+    triangles, e.g. the prior mesh, when given; `warped` [V, 3]: F'_dG(proxy) already computed)."""
+    if warped is None:
+        warped = warp_vertices(editing.forward_deform, proxy_vertices, strength)
     verts, tris = warped, triangles
     if extra is not None:
         verts = np.concatenate([warped, extra])
@@ -356,7 +363,10 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
             },
             {"params": list(tex.mlp.parameters()), "lr": cfg.lr_texture_mlp, "name": "texture_mlp"},
         ]
-        state = {"editing": editing, "prior_vertices": setup.prior.vertices}
+        # the proxy as F'_dG warped it at the last rebuild: checkpointed, so a resumed run
+        # samples as the uninterrupted one until the next rebuild
+        warped = warp_vertices(editing.forward_deform, setup.proxy_vertices)
+        state = {"editing": editing, "prior_vertices": setup.prior.vertices, "warped": warped}
         query = edited_query(template, editing)
         proxy_v = torch.from_numpy(setup.proxy_vertices).float().to(device)
         prior_v = torch.from_numpy(setup.prior.vertices).float().to(device)
@@ -365,21 +375,24 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
     trainer.start(state, groups, lr_final_factor=cfg.lr_final_factor)
     gen = trainer.generator
 
-    def rebuild():
+    def rebuild(rewarp: bool = True):
         """The sampler of the edited space and the view-K rays that need the field."""
         nonlocal edit_sampler
         if cfg.method == "ours":
+            if rewarp:
+                warped[...] = warp_vertices(editing.forward_deform, setup.proxy_vertices)
             edit_sampler = edited_sampler(
                 editing,
                 setup.proxy_vertices,
                 setup.triangles,
                 cfg.band_width,
                 extra=setup.prior.vertices,
+                warped=warped,
             )
         hits = edit_sampler.cast(o_all, d_all)
         return hits, torch.nonzero(hits.hit | (sil > 0.5))[:, 0]
 
-    hits, pool = rebuild()
+    hits, pool = rebuild(rewarp=False)  # fresh: F'_dG at init; resumed: as checkpointed
 
     def pick(points, n):
         return points[torch.randint(len(points), (n,), generator=gen).to(device)]
