@@ -28,10 +28,13 @@ def deformation_smoothness(
 ) -> torch.Tensor:
     """L_gr = mean ||grad F_dG(p)|| + ||F_dG(p) - F_dG(p + eps)||_1 at points [M, 3], eps [M, 3].
 
-    The gradient is that of the displacement (the identity part of x + MLP is not penalised).
+    Both terms are on the displacement MLP(PE(x)): the identity part of x + MLP is not penalised
+    (a translation is perfectly smooth; on the whole map the difference term would pull
+    F_dG(p + eps) towards F_dG(p), i.e. collapse space).
     """
     grad = deform.jacobian_norm(points).mean()
-    diff = (deform(points) - deform(points + jitter)).abs().sum(dim=-1).mean()
+    disp = deform.displacement
+    diff = (disp(points) - disp(points + jitter)).abs().sum(dim=-1).mean()
     return grad + diff
 
 
