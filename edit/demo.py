@@ -15,8 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
-from render.configs import add_options, from_args, option, to_dict
-from render.io import read_json, read_label_map, read_mask, write_json
+from render.configs import add_options, from_args, option, to_dict, validate
+from render.errors import SineError
+from render.io import read_json, read_label_map, read_mask, require_directory, write_json
+
+# The part painted by default: the one the object's ground-truth geometric edit stretches.
+DEFAULT_PART = {"toycar": "cabin", "figurine": "head"}
 
 
 @dataclass
@@ -25,15 +29,39 @@ class DemoConfig:
 
     out: Path = option(Path("runs/demo"), "output folder (capture/, run/, demo_summary.json)")
     procedural: str = option("toycar", "built-in object to use", choices=["toycar", "figurine"])
-    views: int = option(36, "turntable views to render")
-    width: int = option(256, "image width in pixels")
-    height: int = option(256, "image height in pixels")
+    views: int = option(36, "turntable views to render", low=3)
+    width: int = option(256, "image width in pixels", low=16)
+    height: int = option(256, "image height in pixels", low=16)
     paint_part: str = option(
-        "cabin", "part painted in the editing view (the GT geometric edit stretches the cabin)"
+        "auto",
+        "part painted in the editing view; auto = the part the GT geometric edit stretches "
+        "(toycar: cabin, figurine: head)",
     )
-    edit_view: int = option(11, "index of the editing view (the one the user would paint)")
+    edit_view: int = option(
+        11, "index of the editing view (the one the user would paint), below --views", low=0
+    )
     device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
     force: bool = option(False, "redo every stage instead of resuming finished ones")
+
+
+def check_options(cfg: DemoConfig) -> str:
+    """Every option error before any work (a SineError); returns the part to paint."""
+    from recon.procedural import build
+
+    validate(cfg)
+    require_directory(cfg.out, "--out")
+    if cfg.edit_view >= cfg.views:
+        raise SineError(
+            f"--edit-view {cfg.edit_view} is out of range: the demo renders {cfg.views} views "
+            f"(0 to {cfg.views - 1})"
+        )
+    part = DEFAULT_PART[cfg.procedural] if cfg.paint_part == "auto" else cfg.paint_part
+    parts = sorted(build(cfg.procedural).mesh.part_names.values())
+    if part not in parts:
+        raise SineError(
+            f"--paint-part {part!r} is not a part of the {cfg.procedural}: {', '.join(parts)}"
+        )
+    return part
 
 
 def run_demo(cfg: DemoConfig) -> dict:
@@ -46,6 +74,7 @@ def run_demo(cfg: DemoConfig) -> dict:
     from recon.rundir import RunDir
     from recon.synth import SynthConfig, synthesize
 
+    paint_part = check_options(cfg)
     capture, run = cfg.out / "capture", RunDir(cfg.out / "run")
     seconds: dict[str, float] = {}
 
@@ -53,38 +82,50 @@ def run_demo(cfg: DemoConfig) -> dict:
         print(f"\n== sine demo: {name} ==", flush=True)
         seconds[name] = time.perf_counter()
 
+    def done(name: str, result: dict) -> None:
+        if result.get("skipped"):
+            print(f"{name}: already done with these options")
+        seconds[name] = time.perf_counter() - seconds[name]
+
     stage("synth")
-    if cfg.force or not (capture / "transforms.json").is_file():
-        synthesize(
-            SynthConfig(
-                out=capture,
-                procedural=cfg.procedural,
-                views=cfg.views,
-                width=cfg.width,
-                height=cfg.height,
-                edit=["geometric", "texture"],
-            )
+    synth_cfg = SynthConfig(
+        out=capture,
+        procedural=cfg.procedural,
+        views=cfg.views,
+        width=cfg.width,
+        height=cfg.height,
+        edit=["geometric", "texture"],
+    )
+    recorded = capture / "synth.json"
+    same = recorded.is_file() and read_json(recorded).get("config") == to_dict(synth_cfg)
+    force = cfg.force or not same  # a new capture: every later stage is redone
+    if force:
+        synthesize(synth_cfg)
+    labels_dir = capture / "labels"
+    part_id = {n: int(k) for k, n in read_json(capture / "parts.json").items()}[paint_part]
+    names = sorted(p.name for p in labels_dir.glob("*.png"))
+    if not (read_label_map(labels_dir / names[cfg.edit_view]) == part_id).any():
+        raise SineError(
+            f"the {paint_part} is not visible in view {cfg.edit_view}: choose another --edit-view"
         )
-    seconds["synth"] = time.perf_counter() - seconds["synth"]
+    done("synth", {"skipped": not force})
 
     stage("recon")
-    report = run_recon(capture, run, ReconConfig(), IngestConfig(force=cfg.force))
-    seconds["recon"] = time.perf_counter() - seconds["recon"]
+    report = run_recon(capture, run, ReconConfig(), IngestConfig(force=force))
+    done("recon", {})
 
     stage("fit")
-    template = fit_template(run.root, FitConfig(device=cfg.device), force=cfg.force)
-    seconds["fit"] = time.perf_counter() - seconds["fit"]
+    template = fit_template(run.root, FitConfig(device=cfg.device), force=force)
+    done("fit", template)
 
     stage("features")
-    features = distill_features(run.root, FeaturesConfig(device=cfg.device), force=cfg.force)
-    seconds["features"] = time.perf_counter() - seconds["features"]
+    features = distill_features(run.root, FeaturesConfig(device=cfg.device), force=force)
+    done("features", features)
 
     stage("masks")
-    parts = {name: int(k) for k, name in read_json(capture / "parts.json").items()}
-    part_id = parts[cfg.paint_part]
     cameras = run.load_cameras().frames
     edit_cam = cameras[cfg.edit_view]
-    labels = {c.name: read_label_map(capture / "labels" / c.name) for c in cameras}
+    labels = {c.name: read_label_map(labels_dir / c.name) for c in cameras}
     region = labels[edit_cam.name] == part_id
     masks_dir = run.edit("demo") / "semantic_masks"
     semantic_masks(run.root, cfg.edit_view, region, masks_dir, MasksConfig(device=cfg.device))
@@ -106,7 +147,7 @@ def run_demo(cfg: DemoConfig) -> dict:
         "template_heldout_psnr": template.get("heldout_psnr"),
         "template_heldout_ssim": template.get("heldout_ssim"),
         "features_heldout_cosine": features.get("heldout_cosine"),
-        "painted_part": cfg.paint_part,
+        "painted_part": paint_part,
         "semantic_mask_heldout_iou_mean": float(np.mean(list(ious.values()))),
         "semantic_mask_heldout_iou": ious,
         "seconds": {k: round(v, 1) for k, v in seconds.items()},

@@ -362,7 +362,8 @@ class Trainer:
                 entry.update({k: v.item() for k, v in terms.items()})
                 self.log.append({**entry, "seconds": self.seconds})
             if self.step % 10 == 0 or self.step == last:
-                bar.set_postfix({k: f"{v.item():.4f}" for k, v in {"loss": loss, **terms}.items()})
+                values = {"loss": loss, **terms}
+                bar.set_postfix({k: f"{v.item():.4f}" for k, v in values.items()}, refresh=False)
             bar.update(1)
             now = time.perf_counter()
             if (
