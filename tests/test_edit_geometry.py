@@ -1,0 +1,426 @@
+"""Geometric editing: losses on hand-made inputs, the deformation fields, gradients through a
+frozen template, flow-to-3D lifting on a plane, the ARAP prior, symmetry, the edit's inputs, and
+a tiny end-to-end edit (L_geo falls, exact resume, CLI errors, the edit's scene)."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+
+import numpy as np
+import open3d as o3d
+import pytest
+import torch
+
+import sine_cli
+from edit import geometry_losses as L
+from edit.deformation import DeformationField
+from edit.edit_inputs import Target, difference_region, read_target
+from edit.editing_field import EditingField, combine, edited_query
+from edit.geometry_edit import GeometryEditConfig, run_geometry_edit
+from edit.scene import load_scene
+from edit.shape_prior import (
+    Handles,
+    arap_deform,
+    back_project,
+    lift_handles,
+    mirror_handles,
+    mirror_plane,
+)
+from edit.targets import stretch_axis, write_rgba
+from recon.rundir import RunDir
+from render.cameras import Camera, look_at
+from render.errors import SineError
+from render.hashgrid import HashGridConfig
+from render.io import load_torch
+from render.raycast import MeshRaycaster
+from render.renderer import render_rays
+from render.sampler import UniformSampler
+from render.template_field import TemplateField, TemplateFieldConfig, freeze
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the machine is shared: 1 thread avoids OpenMP stalls under load
+    yield
+    torch.set_num_threads(threads)
+
+
+def _constant(field: DeformationField, offset) -> DeformationField:
+    """Makes field(x) = x + offset exactly (output layer: zero weights, bias = offset)."""
+    with torch.no_grad():
+        field.mlp[-1].weight.zero_()
+        field.mlp[-1].bias.copy_(torch.as_tensor(offset, dtype=torch.float32))
+    return field
+
+
+def _linear(field: DeformationField, a: torch.Tensor) -> DeformationField:
+    """Makes field(x) = x + A x exactly: A x = relu(A x) - relu(-A x) on PE's copy of x."""
+    with torch.no_grad():
+        first, last = field.mlp[0], field.mlp[-1]
+        first.weight.zero_()
+        first.bias.zero_()
+        first.weight[0:3, 0:3] = a
+        first.weight[3:6, 0:3] = -a
+        last.weight.zero_()
+        last.bias.zero_()
+        last.weight[:, 0:3] = torch.eye(3)
+        last.weight[:, 3:6] = -torch.eye(3)
+    return field
+
+
+# ---- losses -------------------------------------------------------------------------------
+def test_photometric_is_the_mean_squared_norm_over_rays():
+    pred = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 0.0]])
+    target = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    assert L.photometric(pred, target).item() == pytest.approx((1.0 + 2.0) / 2)
+
+
+def test_silhouette_bce_by_hand_and_clamped():
+    opacity = torch.tensor([0.5, 0.9, 0.2])
+    sil = torch.tensor([1.0, 1.0, 0.0])
+    expected = -(math.log(0.5) + math.log(0.9) + math.log(0.8)) / 3
+    assert L.silhouette_bce(opacity, sil).item() == pytest.approx(expected, rel=1e-5)
+    # opacity 0 where the target has the object: finite, -log(1e-5)
+    value = L.silhouette_bce(torch.tensor([0.0]), torch.tensor([1.0])).item()
+    assert value == pytest.approx(-math.log(1e-5), rel=1e-4)
+
+
+def test_chamfer_two_ways_sum_of_squared_nearest_distances():
+    a = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    b = torch.tensor([[0.0, 0.0, 0.0], [0.0, 2.0, 0.0], [3.0, 0.0, 0.0]])
+    # a -> b: 0 + 1; b -> a: 0 + 4 + 4
+    assert L.chamfer(a, b).item() == pytest.approx(9.0, abs=1e-5)
+    assert L.chamfer(b, a).item() == pytest.approx(9.0, abs=1e-5)
+    assert L.chamfer(a, a).item() == pytest.approx(0.0, abs=1e-6)
+
+
+def test_cycle_is_zero_for_inverse_fields_and_four_offsets_otherwise():
+    a = torch.tensor([0.3, 0.0, 0.4])  # |a| = 0.5
+    points = torch.rand(50, 3) * 2 - 1
+    deform = _constant(DeformationField(), a)
+    inverse = _constant(DeformationField(), -a)
+    assert L.cycle(deform, inverse, points).item() == pytest.approx(0.0, abs=1e-6)
+    same = _constant(DeformationField(), a)  # both ways off by 2a: 2 |2a| = 4 |a|
+    assert L.cycle(deform, same, points).item() == pytest.approx(2.0, abs=1e-5)
+
+
+def test_smoothness_is_zero_for_a_translation_and_the_jacobian_norm_for_a_linear_map():
+    torch.manual_seed(0)
+    points = torch.rand(64, 3) * 2 - 1
+    eps = 0.01 * torch.randn(64, 3)
+    shifted = _constant(DeformationField(), [0.2, -0.1, 0.05])
+    # a translation is perfectly smooth: neither term penalises it (the identity part of
+    # x + MLP(x) is not the deformation)
+    assert L.deformation_smoothness(shifted, points, eps).item() == pytest.approx(0.0, abs=1e-5)
+    a = torch.tensor([[0.1, 0.2, 0.0], [0.0, -0.3, 0.1], [0.2, 0.0, 0.05]])
+    linear = _linear(DeformationField(), a)
+    np.testing.assert_allclose(
+        linear.jacobian_norm(points).detach().numpy(),
+        np.full(64, torch.linalg.norm(a).item()),
+        rtol=1e-5,
+    )
+    expected = torch.linalg.norm(a).item() + (eps @ a.T).abs().sum(dim=-1).mean().item()
+    assert L.deformation_smoothness(linear, points, eps).item() == pytest.approx(expected, rel=1e-5)
+
+
+def test_displacement_l1_is_the_mean_l1_offset():
+    field = _constant(DeformationField(), [0.1, -0.2, 0.3])
+    points = torch.rand(10, 3)
+    assert L.displacement_l1(field, points).item() == pytest.approx(0.6, abs=1e-6)
+
+
+# ---- deformation fields -------------------------------------------------------------------
+def test_deformation_field_starts_near_identity_and_strength_zero_is_exact():
+    torch.manual_seed(0)
+    field = DeformationField()
+    x = torch.rand(5000, 3) * 2 - 1
+    with torch.no_grad():
+        assert (field(x) - x).norm(dim=-1).max().item() < 1e-3
+        _constant(field, [0.5, 0.5, 0.5])
+        assert torch.equal(field(x, strength=0.0), x)
+        np.testing.assert_allclose(field(x, strength=0.5) - x, 0.25, atol=1e-6)
+
+
+def test_deformation_learns_through_a_frozen_template():
+    torch.manual_seed(0)
+    grid = HashGridConfig(n_levels=4, log2_table=10, base_resolution=4, max_resolution=32)
+    template = TemplateField(TemplateFieldConfig(grid=grid))
+    with torch.no_grad():
+        template.grid.table.uniform_(-1.0, 1.0)  # a template with structure to learn through
+    freeze(template)
+    editing = EditingField(grid)
+    query = edited_query(template, editing)
+    n = 16
+    origins = torch.tensor([[0.0, 0.0, 3.0]]).repeat(n, 1)
+    dirs = torch.cat([0.1 * torch.randn(n, 2), -torch.ones(n, 1)], dim=1)
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
+    out = render_rays(query, origins, dirs, UniformSampler(n_coarse=16, n_importance=0))
+    assert out["hit"].all() and "mod" in out
+    (combine(out).sum() + out["opacity"].sum()).backward()
+    assert all(p.grad is None for p in template.parameters())  # frozen
+    for name, p in editing.deform.named_parameters():
+        assert p.grad is not None and p.grad.abs().sum() > 0, name
+    assert all(p.grad is None for p in editing.forward_deform.parameters())  # not rendered
+    assert editing.texture.mlp[-1].weight.grad.abs().sum() > 0  # F_dT through "mod"
+
+
+# ---- flow-to-3D lifting on a plane --------------------------------------------------------
+def _grid_plane(xs, ys, z):
+    """A plane z = const as a triangulated grid: vertices [X*Y, 3], triangles."""
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    vertices = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)], axis=1)
+    ny = len(ys)
+    tris = []
+    for i in range(len(xs) - 1):
+        for j in range(ny - 1):
+            a, b, c, d = i * ny + j, (i + 1) * ny + j, (i + 1) * ny + j + 1, i * ny + j + 1
+            tris += [(a, b, c), (a, c, d)]
+    return vertices, np.array(tris)
+
+
+def test_lift_handles_back_projects_the_flow_at_the_vertex_depth():
+    # camera on +z looking down at the plane z = 0: camera x = world x, camera y = -world y,
+    # depth 3 everywhere; fx = fy = 64 on a 64x64 image
+    cam = Camera(64, 64, 64.0, 64.0, 32.0, 32.0, look_at([0, 0, 3.0], [0, 0, 0], up=(0, 1, 0)))
+    xs = np.linspace(-0.95, 0.95, 20)  # 0.05 + 0.1 k: no vertex projects onto a pixel border
+    front, front_tris = _grid_plane(xs, xs, 0.0)
+    back, back_tris = _grid_plane(0.5 * xs, 0.5 * xs, -0.5)  # hidden behind the front plane
+    vertices = np.concatenate([front, back])
+    triangles = np.concatenate([front_tris, back_tris + len(front)])
+    depth = MeshRaycaster((vertices, triangles)).depth(cam)
+    assert depth[32, 32] == pytest.approx(3.0, abs=1e-5)
+    region = np.zeros((64, 64), bool)
+    region[18:30, 32:46] = True  # world x in (0, 0.656), y in (0.094, 0.656)
+    ones = np.ones((64, 64), np.float32)
+    dx, dy = 2.5, -1.5
+    flow = np.broadcast_to(np.array([dx, dy], np.float32), (64, 64, 2)).copy()
+    handles = lift_handles(cam, vertices, depth, flow, region, ones, ones, visibility_tol=0.02)
+
+    x, y = front[:, 0], front[:, 1]
+    expected = np.nonzero((x > 0) & (x < 0.7) & (y > 0.1) & (y < 0.7))[0]
+    assert len(expected) == 7 * 6
+    np.testing.assert_array_equal(np.sort(handles.ids), expected)
+    order = np.argsort(handles.ids)
+    offset = np.array([dx * 3.0 / 64.0, -dy * 3.0 / 64.0, 0.0])  # camera y is world -y
+    np.testing.assert_allclose(handles.targets[order], front[expected] + offset, atol=1e-6)
+    # anchors: every vertex projecting outside the region, hidden ones too; hidden vertices
+    # behind the region are free
+    uv, _ = cam.project(vertices)
+    in_region = region[uv[:, 1].astype(int), uv[:, 0].astype(int)]
+    np.testing.assert_array_equal(handles.anchor_ids, np.nonzero(~in_region)[0])
+    assert in_region[len(front) :].any()  # some hidden vertices are behind the region: free
+    # sub-pixel motion is flow noise: no handles, the region's visible vertices anchored
+    small = lift_handles(
+        cam, vertices, depth, 0.4 * flow / np.hypot(dx, dy), region, ones, ones, 0.02
+    )
+    assert len(small.ids) == 0
+    np.testing.assert_array_equal(small.anchor_ids, np.union1d(np.nonzero(~in_region)[0], expected))
+
+
+def test_back_project_inverts_project():
+    cam = Camera(80, 60, 70.0, 75.0, 41.0, 29.0, look_at([1.0, -2.0, 1.5], [0, 0, 0]))
+    points = np.random.default_rng(0).uniform(-0.5, 0.5, (20, 3))
+    uv, z = cam.project(points)
+    np.testing.assert_allclose(back_project(cam, uv, z), points, atol=1e-9)
+
+
+# ---- ARAP prior and symmetry --------------------------------------------------------------
+def test_arap_moves_handles_to_targets_keeps_anchors_and_bends_the_rest_smoothly():
+    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=12)
+    v, tris = np.asarray(sphere.vertices), np.asarray(sphere.triangles)
+    handles = np.nonzero(v[:, 2] > 0.8)[0]
+    anchors = np.nonzero(v[:, 2] < -0.3)[0]
+    lift = np.array([0.0, 0.0, 0.3])
+    ids = np.concatenate([handles, anchors])
+    out = arap_deform(v, tris, ids, np.concatenate([v[handles] + lift, v[anchors]]))
+    np.testing.assert_allclose(out[handles], v[handles] + lift, atol=1e-6)
+    np.testing.assert_allclose(out[anchors], v[anchors], atol=1e-6)
+    free = np.setdiff1d(np.arange(len(v)), ids)
+    dz = out[free, 2] - v[free, 2]
+    assert (dz > 0).all() and (dz < 0.3).all()  # in between the anchors and the handles
+    assert np.corrcoef(v[free, 2], dz)[0, 1] > 0.9  # higher vertices follow the handles more
+    disp = out - v
+    edges = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    jumps = np.linalg.norm(disp[edges[:, 0]] - disp[edges[:, 1]], axis=1)
+    assert jumps.max() < 0.15  # neighbours move alike: no tearing
+
+
+def test_mirror_plane_finds_the_symmetry_and_refuses_an_asymmetric_shape():
+    rng = np.random.default_rng(0)
+    half = rng.uniform([0.05, -0.3, -0.2], [0.6, 0.9, 0.2], (150, 3))  # not symmetric in y, z
+    sym = np.concatenate([half, half * [-1, 1, 1]])
+    plane = mirror_plane(sym)
+    assert plane is not None
+    np.testing.assert_allclose(np.abs(plane[:3]), [1.0, 0.0, 0.0], atol=1e-6)
+    assert plane[3] == pytest.approx(0.0, abs=1e-6)
+    assert mirror_plane(rng.uniform(-1, 1, (300, 3))) is None
+
+
+def test_mirror_handles_mirrors_displacements_onto_free_opposite_vertices():
+    v = np.array([[1, 0, 0], [-1, 0, 0], [1, 1, 0], [-1, 1, 0], [0, 2, 0]], float)
+    delta = np.array([0.1, 0.2, 0.3])
+    handles = Handles(np.array([0, 2, 4]), v[[0, 2, 4]] + delta, np.array([3]))
+    out = mirror_handles(handles, v, np.array([1.0, 0.0, 0.0, 0.0]))
+    # vertex 1 mirrors 0; 3 is an anchor and 4 lies on the plane: neither gets a new handle
+    np.testing.assert_array_equal(out.ids, [0, 2, 4, 1])
+    np.testing.assert_allclose(out.targets[3], v[1] + [-0.1, 0.2, 0.3])
+    np.testing.assert_array_equal(out.anchor_ids, [3])
+
+
+# ---- the edit's inputs --------------------------------------------------------------------
+def _square_scene():
+    rgb = np.full((64, 64, 3), 0.5, np.float32)
+    alpha = np.zeros((64, 64), np.float32)
+    alpha[16:48, 16:48] = 1.0
+    rgb[alpha > 0] = [0.8, 0.3, 0.2]
+    return rgb, alpha
+
+
+def test_difference_region_says_nothing_to_edit_and_finds_a_changed_square():
+    rgb, alpha = _square_scene()
+    with pytest.raises(SineError, match="nothing to edit"):
+        difference_region(Target(rgb, alpha, "alpha"), rgb, alpha, dilate_px=4)
+    edited = rgb.copy()
+    edited[20:30, 30:40] = [0.1, 0.6, 0.9]
+    region = difference_region(Target(edited, alpha, "alpha"), rgb, alpha, dilate_px=4)
+    assert region[20:30, 30:40].all()
+    rows, cols = np.nonzero(region)
+    # the square grown by the dilation (4 px) plus at most the blur's reach (2 px)
+    assert 14 <= rows.min() <= 16 and 33 <= rows.max() <= 35
+    assert 24 <= cols.min() <= 26 and 43 <= cols.max() <= 45
+
+
+def test_read_target_alpha_aspect_and_resize(tmp_path):
+    rgb, alpha = _square_scene()
+    path = tmp_path / "t.png"
+    write_rgba(path, rgb, alpha)
+    target = read_target(path, (64, 64), background=[0.0, 0.0, 1.0])
+    assert target.silhouette_source == "alpha"
+    np.testing.assert_array_equal(target.silhouette, alpha)
+    np.testing.assert_allclose(target.rgb[alpha == 0], [[0.0, 0.0, 1.0]] * int((alpha == 0).sum()))
+    np.testing.assert_allclose(target.rgb[alpha == 1], [[0.8, 0.3, 0.2]] * 1024, atol=1 / 255)
+    with pytest.raises(SineError, match="another aspect"):
+        read_target(path, (64, 48))
+    with pytest.warns(UserWarning, match="resized"):
+        big = read_target(path, (128, 128))
+    assert big.rgb.shape == (128, 128, 3) and big.silhouette.shape == (128, 128)
+    assert big.silhouette[40:90, 40:90].all() and not big.silhouette[:25].any()
+    with pytest.raises(SineError, match="does not exist"):
+        read_target(tmp_path / "missing.png", (64, 64))
+
+
+# ---- a tiny edit end to end ---------------------------------------------------------------
+VIEW = 0
+TINY_EDIT = dict(
+    iterations=30,
+    batch_rays=256,
+    prior_points=300,
+    cycle_points=200,
+    smooth_points=200,
+    anchor_points=200,
+    previews=0,
+    threads=1,
+    log_every=1,
+    rebuild_every=25,
+)
+
+
+@pytest.fixture(scope="module")
+def edit_run(tiny_fitted_run, tmp_path_factory):
+    """A copy of the tiny fitted run with a target (view VIEW, the car's top stretched upward)
+    and an uninterrupted 30-step edit "full"."""
+    run = tmp_path_factory.mktemp("geo_edit") / "run"
+    shutil.copytree(tiny_fitted_run, run)
+    scene = load_scene(run, device="cpu")
+    camera = RunDir(run).load_cameras().frames[VIEW]
+    view = scene.render_view(camera)
+    rows = np.nonzero((view["opacity"] > 0.5).any(axis=1))[0]
+    middle = float(rows.min() + rows.max()) / 2
+    top = np.zeros_like(view["opacity"])
+    top[: int(middle)] = 1.0
+    image, alpha = stretch_axis(view["rgb"], view["opacity"], "y", 1.3, middle, top)
+    background = scene.background().detach().numpy()
+    write_rgba(run / "target.png", image, alpha, background=background)
+    cfg = GeometryEditConfig(**TINY_EDIT)
+    metrics = run_geometry_edit(run, VIEW, run / "target.png", "full", cfg, progress=False)
+    return run, metrics
+
+
+def test_edit_lowers_l_geo_and_writes_its_outputs(edit_run):
+    run, metrics = edit_run
+    out = run / "edits" / "full"
+    log = json.loads((out / "log.json").read_text())
+    assert [e["step"] for e in log] == list(range(1, 31))
+    losses = [e["loss"] for e in log]
+    first, last = np.mean(losses[:5]), np.mean(losses[-5:])
+    assert last < 0.8 * first, (first, last)
+    for e in log:  # every term logged and summed into L_geo
+        terms = ("photometric", "silhouette", "gp", "cyc", "gr", "reg")
+        assert e["loss"] == pytest.approx(sum(e[k] for k in terms), rel=1e-5)
+    assert metrics["iterations"] == 30 and metrics["prior_handles"] >= 1
+    for name in ("edit_field.pt", "prior_mesh.ply", "region.png", "target.png", "metrics.json"):
+        assert (out / name).is_file(), name
+    assert not (run / "edits" / "full.partial").exists()
+
+
+def test_interrupted_edit_resumes_bit_exactly(edit_run):
+    run, _ = edit_run
+    cfg = GeometryEditConfig(**TINY_EDIT)
+    # stop between two sampler rebuilds (every 25 steps): the resumed run must sample as before
+    assert run_geometry_edit(
+        run, VIEW, run / "target.png", "resumed", cfg, progress=False, stop_at=12
+    ) == {"step": 12}
+    assert (run / "edits" / "resumed.partial" / "checkpoint.pt").is_file()
+    assert not (run / "edits" / "resumed").exists()
+    metrics = run_geometry_edit(run, VIEW, run / "target.png", "resumed", cfg, progress=False)
+    assert metrics["iterations"] == 30
+    full = load_torch(run / "edits" / "full" / "edit_field.pt")["editing"]
+    resumed = load_torch(run / "edits" / "resumed" / "edit_field.pt")["editing"]
+    assert full.keys() == resumed.keys()
+    for k in full:
+        assert torch.equal(full[k], resumed[k]), k
+    # finished with the same options: skipped
+    again = run_geometry_edit(run, VIEW, run / "target.png", "resumed", cfg, progress=False)
+    assert again["skipped"]
+
+
+def test_edit_cli_errors_are_one_line_with_exit_code_2(edit_run, capsys):
+    run, _ = edit_run
+    target = str(run / "target.png")
+    capsys.readouterr()
+    assert sine_cli.main(["edit", str(run), "--target", target, "--view", "99", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: --view 99 is out of range") and "\n" not in err
+    missing = str(run / "missing.png")
+    assert sine_cli.main(["edit", str(run), "--target", missing, "--view", "0", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "missing.png does not exist" in err and "\n" not in err
+    snap = str(run / "snapshot.png")
+    assert sine_cli.main(["snapshot", str(run), "--view", str(VIEW), "--out", snap]) == 0
+    capsys.readouterr()
+    args = ["edit", str(run), "--target", snap, "--view", str(VIEW), "--name", "same", "--quiet"]
+    assert sine_cli.main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert "nothing to edit" in err and "\n" not in err
+    assert not (run / "edits" / "same").exists()
+
+
+def test_edit_scene_renders_and_colours_its_mesh(edit_run):
+    run, _ = edit_run
+    camera = RunDir(run).load_cameras().frames[VIEW]
+    scene = load_scene(run, edit="full", device="cpu")
+    assert scene.name == "full"
+    view = scene.render_view(camera)
+    assert view["rgb"].shape == (64, 64, 3) and np.isfinite(view["rgb"]).all()
+    assert (view["opacity"] > 0.5).sum() > 100
+    assert view["rgb"].min() >= 0 and view["rgb"].max() <= 1
+    vertices, triangles, colours = scene.colored_mesh()
+    proxy, _ = load_scene(run, device="cpu").mesh()
+    assert vertices.shape == proxy.shape and not np.allclose(vertices, proxy)  # F'_dG warped
+    assert colours.shape == (len(vertices), 3)
+    assert colours.min() >= 0.0 and colours.max() <= 1.0
+    with pytest.raises(SineError, match="not found"):
+        load_scene(run, edit="nope", device="cpu")
