@@ -14,12 +14,14 @@ user's edit of view K). Outputs in RUN/edits/NAME/:
 Ours (`--method ours`): the editing field (F_dG, F'_dG, F_dT) in front of the frozen template,
 trained with L_geo = w_gp L_gp + L_gt + w_gr L_gr + w_cyc L_cyc + w_reg L_reg:
 - L_gt on rays of view K: photometric (C_o + C_e vs the target) + silhouette BCE;
-- L_gp: two-way Chamfer between F'_dG(proxy vertices) and M_P (the same random vertex subset
-  of both each step);
+- L_gp: F'_dG(proxy vertices) against M_P on the same random vertex subset each step: by default
+  vertex to vertex in both directions (F'_dG(v_i) = p_i and F_dG(p_i) = v_i: the ARAP prior keeps
+  the proxy's vertex order, so its correspondences are known), or the paper's two-way Chamfer
+  (`--prior-match chamfer`, for a prior without correspondences);
 - L_gr: smoothness of F_dG at points around the edited surface;
 - L_cyc: F_dG and F'_dG invert each other at uniform points and surface points;
-- L_reg: F_dG does not move the surface the prior left in place, and view K's rays outside the
-  editable region keep the template's colours.
+- L_reg: neither field moves the surface the prior left in place (points in the sampling band
+  around it), and view K's rays outside the editable region keep the template's colours.
 Rays are sampled in the band around the union of F'_dG(proxy) and M_P (rebuilt every
 `rebuild_every` steps), so the edited surface is sampled before F'_dG has learnt to reach it.
 
@@ -45,8 +47,8 @@ from edit.editing_scene import scene_from_folder
 from edit.shape_prior import PriorMesh, build_prior_mesh
 from recon.fit import load_fitted, make_sampler, psnr
 from recon.rundir import RunDir
-from recon.training import Trainer
-from render.configs import option, to_dict
+from recon.training import Trainer, exponential_decay
+from render.configs import option, to_dict, validate
 from render.device import pick_device, torch_threads
 from render.errors import SineError
 from render.io import atomic_path, load_torch, save_torch, write_image, write_json, write_mask
@@ -65,76 +67,60 @@ class GeometryEditConfig:
     method: str = option(
         "ours", "ours (editing field + priors) or naive (fine-tune)", choices=list(METHODS)
     )
-    iterations: int = option(600, "training steps")
-    batch_rays: int = option(1024, "rays of the edited view per step")
-    lr_deform: float = option(2e-3, "Adam learning rate of F_dG and F'_dG")
-    lr_texture_grid: float = option(1e-2, "Adam learning rate of F_dT's hash table")
-    lr_texture_mlp: float = option(1e-3, "Adam learning rate of F_dT's MLP")
-    lr_naive: float = option(1e-3, "naive baseline: learning rate of the template's table and MLPs")
-    lr_final_factor: float = option(0.1, "learning rates decay exponentially to this factor")
-    w_gp: float = option(0.03, "weight of the shape-prior Chamfer loss L_gp (paper: 0.03)")
-    w_gr: float = option(0.1, "weight of the deformation smoothness L_gr (paper: 0.1)")
-    w_cyc: float = option(10.0, "weight of the cycle loss L_cyc (paper: 10)")
-    w_reg: float = option(1.0, "weight of the regularisation L_reg outside the edited region")
-    w_silhouette: float = option(1.0, "weight of the silhouette BCE inside L_gt")
-    prior_points: int = option(2000, "proxy / prior vertices in L_gp per step")
-    cycle_points: int = option(1000, "points of L_cyc per step (the paper's M = 1000)")
-    smooth_points: int = option(1000, "points of L_gr per step")
-    anchor_points: int = option(1000, "unmoved surface points of L_reg per step")
-    jitter: float = option(0.01, "positional jitter (run units) of L_gr and of surface samples")
-    band_width: float = option(0.05, "half-width of the sampling band around the edited proxy")
-    rebuild_every: int = option(25, "steps between re-warping the proxy and rebuilding its BVH")
-    region_dilate: int = option(6, "pixels the automatic editable region is grown by")
-    symmetric: bool = option(False, "mirror the prior's handles across the proxy's mirror plane")
-    visibility_tol: float = option(0.02, "depth tolerance (run units) of visible proxy vertices")
-    arap_iterations: int = option(50, "ARAP iterations of the shape prior")
-    moved_tol: float = option(
-        0.01, "prior displacement (run units) below which a vertex is unedited"
+    iterations: int = option(600, "training steps", low=1)
+    batch_rays: int = option(1024, "rays of the edited view per step", low=1)
+    lr_deform: float = option(2e-3, "Adam learning rate of F_dG and F'_dG", low=1e-12)
+    warmup_steps: int = option(50, "steps over which F_dG's learning rate ramps up linearly", low=0)
+    lr_texture_grid: float = option(1e-2, "Adam learning rate of F_dT's hash table", low=1e-12)
+    lr_texture_mlp: float = option(1e-3, "Adam learning rate of F_dT's MLP", low=1e-12)
+    lr_naive: float = option(
+        1e-3, "naive baseline: learning rate of the template's table and MLPs", low=1e-12
     )
-    checkpoint_every: int = option(100, "steps between checkpoints")
-    checkpoint_seconds: float = option(60.0, "seconds between checkpoints")
-    log_every: int = option(25, "steps between log entries")
-    previews: int = option(4, "held-out views rendered as previews at the end (0: none)")
+    lr_final_factor: float = option(
+        0.1, "learning rates decay exponentially to this factor", low=1e-6, high=1.0
+    )
+    w_gp: float = option(0.03, "weight of the shape-prior loss L_gp (paper: 0.03)", low=0)
+    prior_match: str = option(
+        "vertices",
+        "L_gp: two-way Chamfer to the prior mesh (the paper's, for priors without "
+        "correspondences) or vertex-to-vertex (the ARAP prior keeps the proxy's vertices)",
+        choices=["vertices", "chamfer"],
+    )
+    w_gr: float = option(0.1, "weight of the deformation smoothness L_gr (paper: 0.1)", low=0)
+    w_cyc: float = option(10.0, "weight of the cycle loss L_cyc (paper: 10)", low=0)
+    w_reg: float = option(
+        1.0, "weight of the regularisation L_reg outside the edited region", low=0
+    )
+    w_silhouette: float = option(1.0, "weight of the silhouette BCE inside L_gt", low=0)
+    prior_points: int = option(2000, "proxy / prior vertices in L_gp per step", low=1)
+    cycle_points: int = option(1000, "points of L_cyc per step (the paper's M = 1000)", low=2)
+    smooth_points: int = option(1000, "points of L_gr per step", low=1)
+    anchor_points: int = option(1000, "unmoved surface points of L_reg per step", low=1)
+    jitter: float = option(
+        0.01, "positional jitter (run units) of L_gr and of surface samples", low=0
+    )
+    band_width: float = option(
+        0.05, "half-width of the sampling band around the edited proxy", low=1e-4, high=0.5
+    )
+    rebuild_every: int = option(
+        25, "steps between re-warping the proxy and rebuilding its BVH", low=1
+    )
+    region_dilate: int = option(6, "pixels the automatic editable region is grown by", low=0)
+    symmetric: bool = option(False, "mirror the prior's handles across the proxy's mirror plane")
+    visibility_tol: float = option(
+        0.02, "depth tolerance (run units) of visible proxy vertices", low=0
+    )
+    arap_iterations: int = option(50, "ARAP iterations of the shape prior", low=1)
+    moved_tol: float = option(
+        0.01, "prior displacement (run units) below which a vertex is unedited", low=0
+    )
+    checkpoint_every: int = option(100, "steps between checkpoints", low=1)
+    checkpoint_seconds: float = option(60.0, "seconds between checkpoints", low=1)
+    log_every: int = option(25, "steps between log entries", low=1)
+    previews: int = option(4, "held-out views rendered as previews at the end (0: none)", low=0)
     seed: int = option(0, "random seed")
     device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
-    threads: int = option(0, "torch CPU threads (0: torch's default)")
-
-    def validate(self) -> None:
-        positive = (
-            "iterations",
-            "batch_rays",
-            "prior_points",
-            "cycle_points",
-            "smooth_points",
-            "anchor_points",
-            "rebuild_every",
-            "checkpoint_every",
-            "log_every",
-            "arap_iterations",
-        )
-        for name in positive:
-            if getattr(self, name) < 1:
-                raise SineError(f"--{name.replace('_', '-')} must be >= 1")
-        for name in (
-            "w_gp",
-            "w_gr",
-            "w_cyc",
-            "w_reg",
-            "w_silhouette",
-            "jitter",
-            "region_dilate",
-            "previews",
-            "moved_tol",
-        ):
-            if getattr(self, name) < 0:
-                raise SineError(f"--{name.replace('_', '-')} must be >= 0")
-        for name in ("lr_deform", "lr_texture_grid", "lr_texture_mlp", "lr_naive", "band_width"):
-            if not getattr(self, name) > 0:
-                raise SineError(f"--{name.replace('_', '-')} must be > 0")
-        if not 0 < self.lr_final_factor <= 1:
-            raise SineError("--lr-final-factor must be in (0, 1]")
-        if self.method not in METHODS:
-            raise SineError(f"--method must be one of {', '.join(METHODS)}")
+    threads: int = option(0, "torch CPU threads (0: torch's default)", low=0)
 
 
 RUNTIME_KEYS = (
@@ -285,7 +271,7 @@ def run_geometry_edit(
 ) -> dict:
     """Learns a geometric edit into RUN/edits/NAME; returns its metrics (resumes when re-run)."""
     cfg = cfg or GeometryEditConfig()
-    cfg.validate()
+    validate(cfg)
     run = RunDir(run_dir)
     run.require("cameras")
     pick_view(run, view)
@@ -372,7 +358,12 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
         prior_v = torch.from_numpy(setup.prior.vertices).float().to(device)
         unmoved = prior_v[torch.from_numpy(~setup.prior.moved(cfg.moved_tol)).to(device)]
         surface = torch.cat([proxy_v, prior_v])
-    trainer.start(state, groups, lr_final_factor=cfg.lr_final_factor)
+    decay = exponential_decay(cfg.lr_final_factor, cfg.iterations)
+    warm = max(cfg.warmup_steps, 1)
+    # Adam's first steps move every weight by ~lr at once: the deformation would jump far from
+    # the identity (and the cycle loss with it) before the losses can steer it
+    schedules = {"deform": lambda k: min(1.0, (k + 1) / warm) * decay(k)}
+    trainer.start(state, groups, schedules, lr_final_factor=cfg.lr_final_factor)
     gen = trainer.generator
 
     def rebuild(rewarp: bool = True):
@@ -390,7 +381,7 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
                 warped=warped,
             )
         hits = edit_sampler.cast(o_all, d_all)
-        return hits, torch.nonzero(hits.hit | (sil > 0.5))[:, 0]
+        return hits, torch.nonzero(hits.hit)[:, 0]
 
     hits, pool = rebuild(rewarp=False)  # fresh: F'_dG at init; resumed: as checkpointed
 
@@ -400,6 +391,13 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
     def jittered(points, n):
         p = pick(points, n)
         return p + cfg.jitter * torch.randn(p.shape, generator=gen).to(device)
+
+    def prior_term(template_points, prior_points):
+        if cfg.prior_match == "chamfer":
+            return losses.chamfer(editing.forward_deform(template_points), prior_points)
+        return losses.vertex_match(
+            editing.deform, editing.forward_deform, template_points, prior_points
+        )
 
     def step(i: int) -> dict[str, torch.Tensor]:
         nonlocal hits, pool
@@ -430,11 +428,15 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
         uniform = torch.rand(cfg.cycle_points // 2, 3, generator=gen).to(device) * 2 - 1
         cyc_pts = torch.cat([uniform, jittered(surface, cfg.cycle_points - len(uniform))])
         eps = cfg.jitter * torch.randn(cfg.smooth_points, 3, generator=gen).to(device)
-        if len(unmoved):
-            reg = reg + losses.displacement_l1(deform, jittered(unmoved, cfg.anchor_points))
+        if len(unmoved):  # both fields leave the unedited surface (and its band) in place
+            still = pick(unmoved, cfg.anchor_points)
+            still = still + 0.5 * cfg.band_width * torch.randn(still.shape, generator=gen).to(
+                device
+            )
+            reg = reg + losses.displacement_l1(deform, still) + losses.displacement_l1(fwd, still)
         return {
             **terms,
-            "gp": cfg.w_gp * losses.chamfer(fwd(proxy_v[sub]), prior_v[sub]),
+            "gp": cfg.w_gp * prior_term(proxy_v[sub], prior_v[sub]),
             "cyc": cfg.w_cyc * losses.cycle(deform, fwd, cyc_pts),
             "gr": cfg.w_gr
             * losses.deformation_smoothness(deform, jittered(prior_v, cfg.smooth_points), eps),

@@ -57,3 +57,17 @@ def chamfer(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def displacement_l1(deform: DeformationField, points: torch.Tensor) -> torch.Tensor:
     """L_reg's point term: mean ||F_dG(x) - x||_1 at points [M, 3] that must not move."""
     return (deform(points) - points).abs().sum(dim=-1).mean()
+
+
+def vertex_match(
+    deform: DeformationField,
+    forward: DeformationField,
+    template_points: torch.Tensor,
+    prior_points: torch.Tensor,
+) -> torch.Tensor:
+    """The prior with its correspondences (ARAP keeps the proxy's vertex order): the forward field
+    takes proxy vertex i to prior vertex i and F_dG takes it back, [N, 3] each -> scalar (a sum,
+    as `chamfer`): sum ||F'_dG(v_i) - p_i||^2 + sum ||F_dG(p_i) - v_i||^2."""
+    there = ((forward(template_points) - prior_points) ** 2).sum()
+    back = ((deform(prior_points) - template_points) ** 2).sum()
+    return there + back

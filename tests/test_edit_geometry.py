@@ -325,6 +325,7 @@ TINY_EDIT = dict(
     threads=1,
     log_every=1,
     rebuild_every=25,
+    warmup_steps=5,
 )
 
 
