@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
+from scene_helpers import ring, sphere_depths
 
 from recon.depth import fuse_hull_stereo
 from recon.poses import _shared, foreground_diagonal, prior_intrinsics, sfm_upscale
 from recon.proxy_mesh import clean_mesh, closing_views, fuse_tsdf, mesh_stats
 from recon.stereo import StereoParams, neighbours, pair_depth
 from render.cameras import Camera, look_at
-from tests.test_recon_stages import ring, sphere_depths
 
 
 def test_foreground_diagonal_and_upscale_factor():
@@ -39,7 +41,7 @@ def test_prior_intrinsics_follow_the_sfm_image_size(tmp_path):
 
 
 def test_ingest_keeps_intrinsics_as_sfm_prior_unless_ignored(tmp_path):
-    synth = pytest.importorskip("recon.synth")
+    from recon import synth
     from recon.ingest import IngestConfig, ingest_capture
     from recon.rundir import RunDir
 
@@ -145,3 +147,65 @@ def test_hull_closing_makes_the_proxy_watertight_where_no_view_looks():
     top = np.asarray(closed.vertices)[:, 2] > 0.3  # seen by the real views: the real sphere
     assert np.abs(radii[top] - r).max() < 2 / 64
     assert np.abs(radii - r).max() < 0.02 + 2 / 64
+
+
+def _noise_box(folder) -> Path:
+    """An OBJ box (1 x 0.7 x 0.5) under a blurred colour-noise texture: SIFT-friendly. (The
+    procedural toy car is flat-coloured and symmetric: SfM does not recover its turntable.)"""
+    import trimesh
+    from PIL import Image
+
+    rng = np.random.default_rng(0)
+    tex = cv2.GaussianBlur(rng.random((256, 512, 3)).astype(np.float32), (0, 0), 2.0)
+    tex = ((tex - tex.min()) / (tex.max() - tex.min()) * 255).astype(np.uint8)
+    box = trimesh.creation.box(extents=(1.0, 0.7, 0.5)).subdivide().subdivide()
+    v = box.vertices / np.linalg.norm(box.vertices, axis=1, keepdims=True)
+    uv = np.stack(
+        [0.5 + np.arctan2(v[:, 1], v[:, 0]) / (2 * np.pi), 0.5 + np.arcsin(v[:, 2]) / np.pi]
+    )
+    box.visual = trimesh.visual.TextureVisuals(uv=uv.T, image=Image.fromarray(tex))
+    folder.mkdir(parents=True)
+    box.export(folder / "box.obj")
+    return folder / "box.obj"
+
+
+def test_sfm_recovers_the_turntable_of_a_synthetic_capture(tmp_path):
+    """The successful SfM path: a textured box rendered by `sine synth` (24 views, 320x240) and
+    reconstructed with its poses ignored registers every view, and the recovered cameras match
+    the true ones up to a similarity (relative rotations and distance ratios do not depend on
+    the SfM frame). Measured: 0.62 deg, 0.6 %, silhouette IoU 0.975."""
+    from recon import synth
+    from recon.ingest import IngestConfig
+    from recon.pipeline import ReconConfig, run_recon
+    from recon.rundir import RunDir
+    from render.cameras import load_cameras
+
+    cap = tmp_path / "cap"
+    mesh = _noise_box(tmp_path / "mesh")
+    synth.synthesize(
+        synth.SynthConfig(out=cap, mesh=mesh, views=24, width=320, height=240), progress=False
+    )
+    run = RunDir(tmp_path / "run")
+    cfg = ReconConfig(target_triangles=3000, hull_resolution=64, tsdf_voxel_size=1 / 96)
+    report = run_recon(cap, run, cfg, IngestConfig(ignore_poses=True))
+    assert report["pose_source"].startswith("sfm") and report["registered_views"] == 24
+    assert report["mean_reprojection_error_px"] < 1.0
+    truth = {c.name: c for c in load_cameras(cap / "cameras.json").frames}
+    found = run.load_cameras().frames
+    pairs = [(a, b) for a in range(24) for b in range(a + 1, 24)]
+
+    def geometry(cams):
+        rot = np.array([c.camera_to_world[:3, :3] for c in cams])
+        centres = np.array([c.center for c in cams])
+        angles = [
+            np.degrees(np.arccos(np.clip((np.trace(rot[a].T @ rot[b]) - 1) / 2, -1, 1)))
+            for a, b in pairs
+        ]
+        dists = np.array([np.linalg.norm(centres[a] - centres[b]) for a, b in pairs])
+        return np.array(angles), dists / dists.mean()
+
+    angles, dists = geometry(found)
+    true_angles, true_dists = geometry([truth[c.name] for c in found])
+    assert np.abs(angles - true_angles).max() < 2.0  # degrees
+    assert np.abs(dists - true_dists).max() < 0.02
+    assert report["silhouette_iou_mean"] > 0.9

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scene_helpers import ring, sphere_depths, sphere_masks
 
 from recon.masks import compute_masks, segment_foreground
 from recon.normalize import apply_normalization, compute_normalization, up_axis
 from recon.poses import SfmParams, prepare_sfm_images, run_sfm
 from recon.proxy_mesh import clean_mesh, fuse_tsdf, mesh_stats
-from render.cameras import Camera, CameraSet, look_at
+from render.cameras import CameraSet
 from render.errors import SineError
 from render.io import write_image, write_mask
 
@@ -53,46 +54,6 @@ def given_mask_wins(tmp_path):
 
 def test_given_mask_wins(tmp_path):
     given_mask_wins(tmp_path)
-
-
-def ring(n=12, center=(1.0, 2.0, 3.0), axis=(0.3, 0.1, 1.0), radius=4.0, height=1.5, w=160, h=120):
-    """Cameras on a tilted ring around `center`, looking at it; returns cameras and the axis."""
-    axis = np.asarray(axis, float) / np.linalg.norm(axis)
-    e1 = np.cross(axis, [1.0, 0, 0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(axis, e1)
-    cams = []
-    for i in range(n):
-        a = 2 * np.pi * i / n
-        eye = np.asarray(center) + radius * (np.cos(a) * e1 + np.sin(a) * e2) + height * axis
-        c2w = look_at(eye, center, up=axis)
-        cams.append(Camera(w, h, 150.0, 150.0, w / 2, h / 2, c2w, name=f"v{i:02d}.png"))
-    return cams, axis
-
-
-def sphere_masks(cams, center, r):
-    masks = []
-    for cam in cams:
-        origins, dirs = cam.rays()
-        oc = origins - np.asarray(center)
-        b = (oc * dirs).sum(1)
-        disc = b**2 - ((oc**2).sum(1) - r**2)
-        masks.append((disc >= 0).reshape(cam.height, cam.width))
-    return masks
-
-
-def sphere_depths(cams, center, r):
-    out = []
-    for cam in cams:
-        origins, dirs = cam.rays()
-        oc = origins - np.asarray(center)
-        b = (oc * dirs).sum(1)
-        disc = b**2 - ((oc**2).sum(1) - r**2)
-        t = -b - np.sqrt(np.maximum(disc, 0))
-        z = t * (dirs @ cam.camera_to_world[:3, 2])
-        z[disc < 0] = 0
-        out.append(z.reshape(cam.height, cam.width).astype(np.float32))
-    return out
 
 
 def test_normalisation_of_a_known_ring():
