@@ -31,7 +31,7 @@ import torch.nn.functional as F
 
 from recon.fit import load_fitted, load_views, make_sampler
 from recon.rundir import RunDir
-from recon.training import Trainer, loop_options, progress_bar
+from recon.training import RUNTIME_KEYS, LoopOptions, Trainer, loop_options, progress_bar
 from render.configs import from_json, option, to_dict, to_json, validate
 from render.device import pick_device, torch_threads
 from render.errors import SineError
@@ -49,7 +49,7 @@ from render.io import load_torch, save_torch, write_image, write_json
 
 
 @dataclass
-class FeaturesConfig:
+class FeaturesConfig(LoopOptions):
     """Options of `sine features` (DINO feature-field distillation on the frozen template)."""
 
     iterations: int = option(600, "training steps", low=1)
@@ -89,28 +89,14 @@ class FeaturesConfig:
     )
     max_rays_per_view: int = option(0, "foreground rays kept per training view (0: all)", low=0)
     batch_views: int = option(8, "images per DINO forward pass", low=1)
-    checkpoint_every: int = option(200, "steps between checkpoints", low=1)
-    checkpoint_seconds: float = option(
-        60.0,
-        "seconds of training between checkpoints (besides every checkpoint_every steps)",
-        low=0.0,
-    )
-    log_every: int = option(50, "steps between log entries", low=1)
     previews: int = option(4, "held-out views written as previews (0: none)", low=0)
     seed: int = option(0, "random seed (ray batches, initialisation)", low=0)
-    device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
-    threads: int = option(0, "torch CPU threads (0: torch's default)", low=0)
     eval_chunk: int = option(4096, "rays per chunk when sampling / rendering views", low=1)
 
 
-_RUNTIME_KEYS = (
-    "device",
-    "threads",
+_RUNTIME_KEYS = RUNTIME_KEYS + (
     "eval_chunk",
     "previews",
-    "log_every",
-    "checkpoint_every",
-    "checkpoint_seconds",
     "batch_views",
 )
 

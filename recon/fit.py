@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from recon.rundir import RunDir
-from recon.training import Trainer, loop_options
+from recon.training import RUNTIME_KEYS, LoopOptions, Trainer, loop_options
 from render.configs import from_json, option, to_dict, to_json, validate
 from render.device import pick_device, torch_threads
 from render.errors import SineError
@@ -38,7 +38,7 @@ from render.template_field import Background, TemplateField, TemplateFieldConfig
 
 
 @dataclass
-class FitConfig:
+class FitConfig(LoopOptions):
     """Options of `sine fit` (template radiance field)."""
 
     iterations: int = option(200, "training steps (300-1000 sharpen colour detail)", low=1)
@@ -74,17 +74,8 @@ class FitConfig:
         "background colour: auto (from masks), white, black, learn",
         choices=["auto", "white", "black", "learn"],
     )
-    checkpoint_every: int = option(250, "steps between checkpoints", low=1)
-    checkpoint_seconds: float = option(
-        60.0,
-        "seconds of training between checkpoints (besides every checkpoint_every steps)",
-        low=0.0,
-    )
-    log_every: int = option(50, "steps between log entries", low=1)
     previews: int = option(4, "held-out views written as previews (0: none)", low=0)
     seed: int = option(0, "random seed (ray batches, jitter, initialisation)", low=0)
-    device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
-    threads: int = option(0, "torch CPU threads (0: torch's default)", low=0)
     eval_views: int = option(0, "held-out views to render for the metrics (0: all)", low=0)
     eval_chunk: int = option(16384, "rays per chunk when rendering held-out views", low=1)
 
@@ -270,15 +261,10 @@ def evaluate(
 
 # ---- training ---------------------------------------------------------------------------------
 # Settings that do not change the result: a checkpoint made with other values still resumes.
-_RUNTIME_KEYS = (
-    "device",
-    "threads",
+_RUNTIME_KEYS = RUNTIME_KEYS + (
     "eval_chunk",
     "eval_views",
     "previews",
-    "log_every",
-    "checkpoint_every",
-    "checkpoint_seconds",
 )
 
 

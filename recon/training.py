@@ -62,6 +62,7 @@ import shutil
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -69,12 +70,32 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from render.configs import option
 from render.errors import SineError
 from render.io import load_torch, read_json, save_torch, write_json
 
 StepFn = Callable[[int], dict[str, torch.Tensor]]
 # The loop's own options, by the names a stage config gives them (see `loop_options`).
 LOOP_OPTIONS = ("iterations", "seed", "log_every", "checkpoint_every", "checkpoint_seconds")
+
+
+@dataclass
+class LoopOptions:
+    """Options every training stage's config inherits: when to checkpoint and log, where to run.
+    They never change the result (RUNTIME_KEYS): a checkpoint made with other values resumes."""
+
+    checkpoint_every: int = option(250, "steps between checkpoints", low=1)
+    checkpoint_seconds: float = option(
+        60.0,
+        "seconds of training between checkpoints (besides every checkpoint_every steps)",
+        low=0.0,
+    )
+    log_every: int = option(50, "steps between log entries", low=1)
+    device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
+    threads: int = option(0, "torch CPU threads (0: torch's default)", low=0)
+
+
+RUNTIME_KEYS = ("checkpoint_every", "checkpoint_seconds", "log_every", "device", "threads")
 _RESERVED = ("optimizer", "scheduler", "generator")
 
 

@@ -53,7 +53,8 @@ def add_options(parser: argparse.ArgumentParser, cls: type, skip: tuple[str, ...
     """Adds one `--name` option per dataclass field of `cls` (except those in `skip`)."""
     hints = typing.get_type_hints(cls)
     group = parser.add_argument_group(f"{cls.__name__} options")
-    for f in dataclasses.fields(cls):
+    own = cls.__dict__.get("__annotations__", {})  # the class's own options first, then inherited
+    for f in sorted(dataclasses.fields(cls), key=lambda f: f.name not in own):
         if f.name in skip:
             continue
         tp, _ = _base_type(hints[f.name])
