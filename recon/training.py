@@ -30,6 +30,9 @@ back-propagation: with `manual_backward=True` the step calls `backward()` itself
 needs (e.g. once per image patch rendered with a graph: the gradients accumulate), and returns
 the detached terms for the log; the loop then only checks and steps.
 
+A stage's config inherits `LoopOptions` (checkpoint_every, checkpoint_seconds, log_every, device,
+threads: RUNTIME_KEYS, they never change the result) and passes `**loop_options(cfg)`.
+
 Parameter groups are torch's dicts, each with a unique "name" and its "lr"; each group's learning
 rate is lr x factor(step), factor = `schedules[name]` or, by default, an exponential decay to
 `lr_final_factor` at `iterations` (`exponential_decay`). Adam (betas 0.9, 0.99) unless the stage
