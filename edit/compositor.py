@@ -1,0 +1,75 @@
+"""The colour compositing layer of texture edits (paper Sec. 3.3 + supplementary).
+
+A small 2D UNet blends the template image I_o and the modification image I_m (both rendered with
+the same weights, `edit.editing_field.edited_query`) into the edited view I:
+
+    input concat(I_o, I_m)            [B, 6, H, W]
+    encoder  conv3x3 6 -> 16, ReLU    e1 [B, 16, H, W]
+             conv3x3 16 -> 32 stride 2, ReLU
+                                      e2 [B, 32, H/2, W/2]
+    decoder  upsample x2 (bilinear), conv3x3 32 -> 16, ReLU
+             concat with e1 (skip), conv3x3 32 -> 16, ReLU
+             conv3x3 16 -> 3 (the head)
+    output   I = sigmoid(logit(clamp(I_o + I_m, eps, 1 - eps)) + head)
+
+The head predicts a residual in logit space on top of the plain sum I_o + I_m (which is what the
+`--no-compositor` baseline renders). The head starts at zero, so before training the composite is
+exactly clamp(I_o + I_m) (up to the eps clamp), and with m' = 0 (F_dT's start) it is I_o: editing
+starts at the template. The sum in the base keeps F_dT's colours on a direct path to the image
+from the first step (with a zero head nothing else would reach them); the UNet then learns the
+blending the per-point field cannot: a colour mapping shared by all views, which carries a change
+seen in one view to the part's pixels in every other view. The output is a sigmoid, in (0, 1).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+EPS = 1e-4  # the base image is clamped to [EPS, 1 - EPS] before the logit
+
+
+def _conv(c_in: int, c_out: int, stride: int = 1) -> nn.Conv2d:
+    return nn.Conv2d(c_in, c_out, 3, stride=stride, padding=1)
+
+
+class Compositor(nn.Module):
+    """(I_o [B, 3, H, W], I_m [B, 3, H, W]) -> I [B, 3, H, W] in (0, 1); see the module doc."""
+
+    def __init__(self, width: int = 16):
+        super().__init__()
+        self.enc1 = _conv(6, width)
+        self.enc2 = _conv(width, 2 * width, stride=2)
+        self.dec2 = _conv(2 * width, width)
+        self.dec1 = _conv(2 * width, width)
+        self.head = _conv(width, 3)
+        nn.init.zeros_(self.head.weight)
+        nn.init.zeros_(self.head.bias)
+
+    def residual(self, template: torch.Tensor, modification: torch.Tensor) -> torch.Tensor:
+        """The head's logit residual [B, 3, H, W] (zero before training)."""
+        e1 = F.relu(self.enc1(torch.cat([template, modification], dim=1)))
+        e2 = F.relu(self.enc2(e1))
+        up = F.interpolate(e2, size=e1.shape[-2:], mode="bilinear", align_corners=False)
+        d2 = F.relu(self.dec2(up))
+        d1 = F.relu(self.dec1(torch.cat([d2, e1], dim=1)))
+        return self.head(d1)
+
+    def forward(self, template: torch.Tensor, modification: torch.Tensor) -> torch.Tensor:
+        if template.shape != modification.shape or template.dim() != 4 or template.shape[1] != 3:
+            raise ValueError(
+                f"expected two [B, 3, H, W] images, got {tuple(template.shape)} and "
+                f"{tuple(modification.shape)}"
+            )
+        base = (template + modification).clamp(EPS, 1.0 - EPS)
+        return torch.sigmoid(torch.logit(base) + self.residual(template, modification))
+
+
+def composite_hwc(compositor: Compositor | None, template, modification) -> torch.Tensor:
+    """Images [H, W, 3] (torch) -> the edited image [H, W, 3]; None: the plain sum, clamped
+    (the `--no-compositor` rendering, `edit.editing_field.combine`)."""
+    if compositor is None:
+        return (template + modification).clamp(0.0, 1.0)
+    chw = compositor(template.permute(2, 0, 1)[None], modification.permute(2, 0, 1)[None])
+    return chw[0].permute(1, 2, 0)

@@ -1,0 +1,204 @@
+"""Views of the frozen template kept for texture editing: what F_dT's image depends on.
+
+A texture edit leaves the geometry alone (F_dG is the identity, the template is frozen), so in any
+view the template image I_o, the opacity and every sample's volume-rendering weight are constants.
+`sample_view` renders them once (no graph) and keeps the samples that matter (weight above
+`min_weight`) in a compressed-row layout: the samples of pixel p are `offsets[p]:offsets[p+1]`.
+Then the modification image of any range of pixels is
+
+    I_m(p) = sum over its samples s of w_s * m'(x_s)          (`render_modification`)
+
+one F_dT query per kept sample and no template query at all; `edit.deferred` re-renders it chunk
+by chunk with a graph. `jittered_camera` perturbs a pose for L_tex's augmentation, and
+`vertex_labels` / `labels_to_editable` give the proxy-lifted editable mask (when the run has no
+feature field for semantic masks).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from render import volume
+from render.renderer import _background
+
+
+@dataclass
+class ViewSamples:
+    """One view through the frozen template; P pixels (row-major), S kept samples."""
+
+    camera: object  # render.cameras.Camera
+    template_rgb: torch.Tensor  # [P, 3] I_o over the background
+    opacity: torch.Tensor  # [P]
+    depth: torch.Tensor  # [P] expected ray distance (0 where nothing is hit)
+    points: torch.Tensor  # [S, 3]
+    weights: torch.Tensor  # [S]
+    pixel: torch.Tensor  # [S] int64, the pixel of each sample (sorted)
+    offsets: torch.Tensor  # [P + 1] int64
+    editable: torch.Tensor | None = None  # [P] bool: where L_reg does not apply
+    template_sim: torch.Tensor | None = None  # [1, T, T] DINO self-similarity of I_o
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(H, W) of the pixels when they form a full image (the camera's)."""
+        return self.camera.height, self.camera.width
+
+    @property
+    def n_pixels(self) -> int:
+        return int(self.template_rgb.shape[0])
+
+    def subset(self, pixels: torch.Tensor) -> ViewSamples:
+        """The view restricted to `pixels` [Q] (int64 indices, in the order given)."""
+        starts, stops = self.offsets[pixels], self.offsets[pixels + 1]
+        counts = stops - starts  # [Q]
+        offsets = torch.zeros(len(pixels) + 1, dtype=torch.int64, device=counts.device)
+        offsets[1:] = torch.cumsum(counts, 0)
+        local = torch.arange(int(offsets[-1]), device=counts.device)
+        first = torch.repeat_interleave(offsets[:-1], counts)
+        ids = torch.repeat_interleave(starts, counts) + (local - first)
+        return ViewSamples(
+            camera=self.camera,
+            template_rgb=self.template_rgb[pixels],
+            opacity=self.opacity[pixels],
+            depth=self.depth[pixels],
+            points=self.points[ids],
+            weights=self.weights[ids],
+            pixel=torch.repeat_interleave(torch.arange(len(pixels), device=counts.device), counts),
+            offsets=offsets,
+            editable=None if self.editable is None else self.editable[pixels],
+        )
+
+
+@torch.no_grad()
+def sample_view(
+    camera, template, sampler, background, min_weight: float = 1e-3, chunk: int = 8192, device=None
+) -> ViewSamples:
+    """Renders `camera` through the frozen `template` (as `render.renderer.render_rays`, without
+    perturbation) and keeps its samples of weight > min_weight (0 keeps every sample)."""
+    device = device or torch.device("cpu")
+    o_all, d_all = (torch.from_numpy(a).to(device) for a in camera.rays())
+    n = len(o_all)
+    rgb = _background(background, n, o_all).clone()
+    opacity = torch.zeros(n, device=device)
+    depth = torch.zeros(n, device=device)
+    counts = torch.zeros(n, dtype=torch.int64, device=device)
+    points, weights = [], []
+    for start in range(0, n, chunk):
+        o, d = o_all[start : start + chunk], d_all[start : start + chunk]
+        hits = sampler.cast(o, d)
+        idx = torch.nonzero(hits.hit)[:, 0]
+        if idx.numel() == 0:
+            continue
+        sub, o, d = hits[idx], o[idx], d[idx]
+        t, delta = sampler.sample(sub, False)
+        if getattr(sampler, "n_importance", 0):
+            pts = o[:, None, :] + d[:, None, :] * t[..., None]
+            sigma = template(pts.reshape(-1, 3), d.repeat_interleave(t.shape[1], 0))["sigma"]
+            w = volume.render_weights(sigma.view(t.shape), t, delta=delta)
+            t, delta = sampler.importance(sub, t, w, False)
+        pts = o[:, None, :] + d[:, None, :] * t[..., None]  # [r, S, 3]
+        res = template(pts.reshape(-1, 3), d.repeat_interleave(t.shape[1], 0))
+        w = volume.render_weights(res["sigma"].view(t.shape), t, delta=delta)  # [r, S]
+        acc = volume.opacity(w)
+        colour = volume.composite(w, {"rgb": res["rgb"].view(*t.shape, 3)})["rgb"]
+        gidx = start + idx
+        rgb[gidx] = volume.over_background(colour, acc, rgb[gidx])
+        opacity[gidx] = acc
+        depth[gidx] = volume.expected_depth(w, t) / acc.clamp_min(1e-6)
+        keep = w > min_weight  # [r, S]
+        counts[gidx] = keep.sum(dim=1)
+        points.append(pts[keep])
+        weights.append(w[keep])
+    offsets = torch.zeros(n + 1, dtype=torch.int64, device=device)
+    offsets[1:] = torch.cumsum(counts, 0)
+    empty = torch.zeros(0, 3, device=device)
+    return ViewSamples(
+        camera=camera,
+        template_rgb=rgb,
+        opacity=opacity,
+        depth=depth,
+        points=torch.cat(points) if points else empty,
+        weights=torch.cat(weights) if weights else empty[:, 0],
+        pixel=torch.repeat_interleave(torch.arange(n, device=device), counts),
+        offsets=offsets,
+    )
+
+
+def render_modification(view: ViewSamples, texture, start: int, stop: int) -> torch.Tensor:
+    """I_m of pixels start..stop-1 [stop - start, 3] = per pixel sum of w_s F_dT(x_s)."""
+    s0, s1 = int(view.offsets[start]), int(view.offsets[stop])
+    out = view.template_rgb.new_zeros(stop - start, 3)
+    if s1 == s0:
+        return out
+    m = texture(view.points[s0:s1]) * view.weights[s0:s1, None]  # [s, 3]
+    return out.index_add(0, view.pixel[s0:s1] - start, m)
+
+
+def jittered_camera(camera, degrees: float, rng: np.random.Generator):
+    """The camera turned about the object's centre (the origin) by a random rotation: a uniform
+    random axis, an angle drawn from N(0, degrees). degrees 0: the camera itself."""
+    if degrees <= 0:
+        return camera
+    axis = rng.normal(size=3)
+    axis /= max(np.linalg.norm(axis), 1e-12)
+    angle = np.deg2rad(rng.normal(0.0, degrees))
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    rot = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)  # Rodrigues
+    pose = camera.camera_to_world.copy()
+    pose[:3, :3] = rot @ pose[:3, :3]
+    pose[:3, 3] = rot @ pose[:3, 3]
+    return camera.replace(camera_to_world=pose)
+
+
+def scaled_camera(camera, longer_side: int):
+    """The camera resized so its longer side is `longer_side` pixels (aspect kept)."""
+    scale = longer_side / max(camera.width, camera.height)
+    w, h = max(1, round(camera.width * scale)), max(1, round(camera.height * scale))
+    return camera if (w, h) == (camera.width, camera.height) else camera.resized(w, h)
+
+
+# ---- the proxy-lifted editable mask (without a feature field) ---------------------------------
+INSIDE, OUTSIDE, UNSEEN = 1, 0, -1
+
+
+def vertex_labels(
+    camera, vertices: np.ndarray, triangles: np.ndarray, region: np.ndarray, tol: float
+) -> np.ndarray:
+    """Per proxy vertex [V] int8: INSIDE (visible in the editing view, in the painted region),
+    OUTSIDE (visible there, outside the region) or UNSEEN (hidden from the editing view)."""
+    from render.raycast import MeshRaycaster
+
+    depth = MeshRaycaster((vertices, triangles)).depth(camera)  # [H, W] camera z, 0 = miss
+    uv, z = camera.project(vertices)
+    h, w = depth.shape
+    col = np.floor(uv[:, 0]).astype(np.int64)
+    row = np.floor(uv[:, 1]).astype(np.int64)
+    inside_image = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    labels = np.full(len(vertices), UNSEEN, np.int8)
+    c, r = col[inside_image], row[inside_image]
+    surface = depth[r, c]
+    seen = (surface > 0) & (z[inside_image] <= surface + tol)
+    ids = np.nonzero(inside_image)[0][seen]
+    labels[ids] = np.where(region[r[seen], c[seen]], INSIDE, OUTSIDE)
+    return labels
+
+
+def labels_to_editable(
+    view: ViewSamples, vertices: np.ndarray, labels: np.ndarray, min_opacity: float = 0.5
+) -> torch.Tensor:
+    """[P] bool: the view's object pixels whose surface point (the expected depth along the ray)
+    is nearest to a proxy vertex that is INSIDE the painted region or UNSEEN from the editing
+    view (nothing says it is unedited). Background pixels and pixels of vertices seen outside
+    the region are not editable: L_reg keeps them."""
+    from scipy.spatial import cKDTree
+
+    o, d = view.camera.rays()
+    obj = (view.opacity >= min_opacity).cpu().numpy()
+    editable = np.zeros(len(obj), bool)
+    if obj.any():
+        pts = o[obj] + d[obj] * view.depth.cpu().numpy()[obj, None]
+        _, nearest = cKDTree(vertices).query(pts)
+        editable[obj] = labels[nearest] != OUTSIDE
+    return torch.from_numpy(editable).to(view.opacity.device)
