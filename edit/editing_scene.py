@@ -2,7 +2,10 @@
 
 Ours: the frozen template behind the editing field, sampled in the band around the proxy warped by
 F'_dG; `strength` t scales the edit (0 = template, 1 = the edit). Naive: the fine-tuned template
-with the template's proxy (it has no notion of a changed surface).
+with the template's proxy (it has no notion of a changed surface). Texture edits
+(`TextureEditScene`): the template image I_o and F_dT's modification image I_m blended by the 2D
+compositor (`edit.compositor`; without one, I_o + I_m); `strength` t blends the images,
+(1 - t) I_o + t I.
 """
 
 from __future__ import annotations
@@ -14,13 +17,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from edit.compositor import Compositor, composite_hwc
 from edit.editing_field import EditingField, combine, edited_query, warp_vertices
 from edit.scene import Scene, TemplateScene, load_template_scene, radial_normals
 from recon.rundir import RunDir
 from render.errors import SineError
 from render.mesh_export import surface_colors
 from render.renderer import render_image
-from render.sampler import BandSampler, ProxyRaycaster
+from render.sampler import BandSampler
 from render.template_field import freeze
 
 
@@ -47,9 +51,14 @@ class EditScene(Scene):
 
     def sampler(self) -> BandSampler:
         if self._sampler is None:
+            from edit.geometry_edit import edited_sampler
+
             fit_cfg = self.template.fit_config
-            caster = ProxyRaycaster(self.mesh(), inflate=self.band_width)
-            self._sampler = BandSampler(caster, fit_cfg.band_samples, fit_cfg.coarse_samples)
+            vertices, triangles = self.mesh()
+            samples = (fit_cfg.band_samples, fit_cfg.coarse_samples)
+            self._sampler = edited_sampler(
+                self.editing, None, triangles, self.band_width, samples, warped=vertices
+            )
         return self._sampler
 
     def render_view(self, camera, chunk: int = 16384) -> dict[str, np.ndarray]:
@@ -70,6 +79,52 @@ class EditScene(Scene):
         return surface_colors(
             edited_colour, points, normals, band=self.band_width, device=self.device
         )
+
+
+@dataclass
+class TextureEditScene(EditScene):
+    """A texture edit: I_o and I_m rendered with the same weights, then the compositor."""
+
+    compositor: Compositor | None = None
+    color_views: int = 8  # views rendered to colour exported vertices
+
+    def render_view(self, camera, chunk: int = 16384) -> dict[str, np.ndarray]:
+        query = edited_query(self.template.field, self.editing, 1.0)
+        out = render_image(
+            camera, query, self.sampler(), self.template.background, chunk, self.device
+        )
+        template, mod = (torch.from_numpy(out[k]).to(self.device) for k in ("rgb", "mod"))
+        with torch.no_grad():
+            edited = composite_hwc(self.compositor, template, mod)
+        rgb = (1.0 - self.strength) * template + self.strength * edited
+        return {"rgb": rgb.cpu().numpy(), **{k: out[k] for k in ("opacity", "depth", "z")}}
+
+    def colors_at(self, points: np.ndarray, normals: np.ndarray | None = None) -> np.ndarray:
+        """The compositor works on images: each point takes its colour from the rendered view
+        (of `color_views` around the ring) that sees it most frontally; points no view sees keep
+        the field's own colour c' + m'."""
+        points = np.asarray(points, np.float32).reshape(-1, 3)
+        normals = radial_normals(points) if normals is None else np.asarray(normals, np.float32)
+        colours = super().colors_at(points, normals)
+        best = np.full(len(points), 0.1)  # least cosine between normal and view direction
+        frames = self.run.load_cameras().frames
+        count = min(self.color_views, len(frames))
+        for k in np.linspace(0, len(frames), count, endpoint=False).astype(int):
+            cam = frames[k]
+            out = self.render_view(cam)
+            uv, z = cam.project(points)
+            col, row = np.floor(uv[:, 0]), np.floor(uv[:, 1])
+            ok = (z > 0) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+            col, row = np.where(ok, col, 0).astype(int), np.where(ok, row, 0).astype(int)
+            seen = ok & (np.abs(out["z"][row, col] - z) < 2 * self.band_width)
+            seen &= out["opacity"][row, col] > 0.5
+            to_camera = cam.center[None] - points
+            to_camera /= np.maximum(np.linalg.norm(to_camera, axis=1, keepdims=True), 1e-9)
+            facing = (to_camera * normals).sum(axis=1)
+            better = seen & (facing > best)
+            colours[better] = np.clip(out["rgb"][row[better], col[better]], 0, 1)
+            best[better] = facing[better]
+        return colours
 
 
 def load_edit_scene(run: RunDir, name: str, strength: float, device: torch.device) -> Scene:
@@ -96,6 +151,22 @@ def scene_from_folder(run: RunDir, edit_dir, strength: float, device: torch.devi
     editing = EditingField(template.field.grid.cfg).to(device)
     editing.load_state_dict({k: v.to(device) for k, v in data["editing"].items()})
     editing.eval()
+    if data["method"] == "texture":
+        compositor = None
+        if data.get("compositor") is not None:
+            compositor = Compositor().to(device)
+            compositor.load_state_dict({k: v.to(device) for k, v in data["compositor"].items()})
+            compositor.eval()
+        return TextureEditScene(
+            run=run,
+            device=device,
+            name=name,
+            template=template,
+            editing=editing,
+            strength=float(strength),
+            band_width=float(data["band_width"]),
+            compositor=compositor,
+        )
     return EditScene(
         run=run,
         device=device,

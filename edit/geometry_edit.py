@@ -13,7 +13,8 @@ user's edit of view K). Outputs in RUN/edits/NAME/:
 
 Ours (`--method ours`): the editing field (F_dG, F'_dG, F_dT) in front of the frozen template,
 trained with L_geo = w_gp L_gp + L_gt + w_gr L_gr + w_cyc L_cyc + w_reg L_reg:
-- L_gt on rays of view K: photometric (C_o + C_e vs the target) + silhouette BCE;
+- L_gt on rays of view K: photometric (C_o + C_e vs the target) + silhouette BCE, the target
+  being the user's image inside the editable region and the template's rendering outside it;
 - L_gp: F'_dG(proxy vertices) against M_P on the same random vertex subset each step: by default
   vertex to vertex in both directions (F'_dG(v_i) = p_i and F_dG(p_i) = v_i: the ARAP prior keeps
   the proxy's vertex order, so its correspondences are known), or the paper's two-way Chamfer
@@ -51,7 +52,15 @@ from recon.training import Trainer, exponential_decay
 from render.configs import option, to_dict, validate
 from render.device import pick_device, torch_threads
 from render.errors import SineError
-from render.io import atomic_path, load_torch, save_torch, write_image, write_json, write_mask
+from render.io import (
+    atomic_path,
+    file_sha256,
+    load_torch,
+    save_torch,
+    write_image,
+    write_json,
+    write_mask,
+)
 from render.raycast import MeshRaycaster
 from render.renderer import render_image, render_rays
 from render.sampler import BandSampler, ProxyRaycaster
@@ -205,7 +214,8 @@ def save_prior(out: Path, prior: PriorMesh, run: RunDir) -> None:
     mesh = trimesh.Trimesh(prior.vertices, prior.triangles, process=False)
     with atomic_path(out / "prior_mesh.ply") as tmp:
         mesh.export(str(tmp), file_type="ply")
-    np.save(out / "prior_displacement.npy", prior.displacement.astype(np.float32))
+    with atomic_path(out / "prior_displacement.npy") as tmp, open(tmp, "wb") as f:
+        np.save(f, prior.displacement.astype(np.float32))
     frames = run.load_cameras().frames
     caster = MeshRaycaster((prior.vertices, prior.triangles))
     tiles = []
@@ -236,22 +246,35 @@ def edited_sampler(
     proxy_vertices,
     triangles,
     band: float,
+    samples: tuple[int, int],
     strength=1.0,
     extra=None,
     warped=None,
 ) -> BandSampler:
-    """Band sampler around F'_dG(proxy) (united with `extra` vertices [V, 3] of the same
-    triangles, e.g. the prior mesh, when given; `warped` [V, 3]: F'_dG(proxy) already computed)."""
+    """Band sampler (`samples`: band and coarse samples per ray) around F'_dG(proxy), united with
+    `extra` vertices [V, 3] of the same triangles (e.g. the prior mesh) when given; `warped`
+    [V, 3]: F'_dG(proxy) already computed."""
     if warped is None:
         warped = warp_vertices(editing.forward_deform, proxy_vertices, strength)
     verts, tris = warped, triangles
     if extra is not None:
         verts = np.concatenate([warped, extra])
         tris = np.concatenate([triangles, triangles + len(warped)])
-    return BandSampler(ProxyRaycaster((verts, tris), inflate=band), 16, 4)
+    return BandSampler(ProxyRaycaster((verts, tris), inflate=band), *samples)
 
 
 # ---- training -----------------------------------------------------------------------------
+def input_digests(target, mask, region) -> dict:
+    """The user's files by path and content (an image edited in place is a new edit)."""
+    out = {}
+    for key, path in (("target", target), ("mask", mask), ("region", region)):
+        if path is not None and not Path(path).is_file():
+            raise SineError(f"--{key} {path} does not exist")
+        out[key] = None if path is None else str(path)
+        out[f"{key}_sha256"] = None if path is None else file_sha256(path)
+    return out
+
+
 def _image_rays(camera, device):
     o, d = camera.rays()
     return torch.from_numpy(o).to(device), torch.from_numpy(d).to(device)
@@ -288,9 +311,7 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
     settings = {
         "mode": "geometry",
         "view": view,
-        "target": str(target),
-        "mask": str(mask),
-        "region": str(region),
+        **input_digests(target, mask, region),
         **to_dict(cfg),
     }
     trainer = Trainer(
@@ -322,8 +343,14 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
 
     torch.manual_seed(cfg.seed)
     o_all, d_all = _image_rays(setup.camera, device)
-    tgt = torch.from_numpy(setup.target_rgb.reshape(-1, 3)).to(device)
-    sil = torch.from_numpy(setup.target_alpha.reshape(-1)).float().to(device)
+    # L_gt's targets: the user's edit inside the editable region, the template's own rendering
+    # outside it (identical for a target edited from a snapshot; a target from elsewhere, e.g. a
+    # photo, must not make the field warp the unedited part to fix the template's own errors)
+    inside = setup.region[..., None]
+    tgt_rgb = np.where(inside, setup.target_rgb, setup.template_rgb)
+    tgt_sil = np.where(setup.region, setup.target_alpha, setup.template_alpha > 0.5)
+    tgt = torch.from_numpy(tgt_rgb.reshape(-1, 3).astype(np.float32)).to(device)
+    sil = torch.from_numpy(tgt_sil.reshape(-1).astype(np.float32)).to(device)
     outside = torch.from_numpy(~setup.region.reshape(-1)).to(device)
     tmpl = torch.from_numpy(setup.template_rgb.reshape(-1, 3)).to(device)
     edit_sampler = sampler
@@ -377,6 +404,7 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
                 setup.proxy_vertices,
                 setup.triangles,
                 cfg.band_width,
+                (fit_cfg.band_samples, fit_cfg.coarse_samples),
                 extra=setup.prior.vertices,
                 warped=warped,
             )
