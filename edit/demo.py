@@ -1,18 +1,40 @@
-"""`sine demo`: the whole pipeline, as far as it is built, on the built-in procedural toy car.
+"""`sine demo`: the main job end to end on a built-in procedural object, with no outside data.
 
-Stages (each one the library function behind its own command, each skipped when already done):
-synth (ground-truth turntable + GT edits) -> recon (known poses) -> fit (template field) ->
-features (DINO feature field) -> masks (semantic masks of one painted part, scored against the
-ground-truth part labels). Everything lands under OUT/; OUT/demo_summary.json has the numbers.
+Stages (each the library function behind its own command; each skips finished work):
+
+    synth     a synthetic turntable with ground truth and GT edits            (`sine synth`)
+    recon     poses by SfM (the synthetic poses are ignored), proxy mesh      (`sine recon`)
+    fit       the template radiance field                                     (`sine fit`)
+    features  the DINO feature field                                          (`sine features`)
+    masks     semantic masks of the part painted in view K, scored against
+              the ground-truth part labels                                    (`sine masks`)
+    target    the editing target: the GT geometric edit's image of view K,
+              as an RGBA target (edit/targets.py)                             (`sine target`)
+    edit      the geometric edit learnt from that one image                   (`sine edit`)
+    render    orbit videos of the template, the edit and template | edit      (`sine render`)
+    export    the template and the edited mesh, coloured, as GLB              (`sine export`)
+    view      a viewer screenshot of both meshes and the cameras              (`sine view`)
+    eval      held-out views against the ground-truth edit                    (`sine eval`)
+    summary   OUT/summary.png (views x template | edit | ground truth, with the numbers),
+              OUT/summary.html (the pictures and videos next to it), OUT/demo_summary.json
+
+Everything lands under OUT/. `--fast` renders fewer views at a lower working resolution and
+trains fewer steps (the end-to-end test runs it).
+
+TODO(texture edit): one texture edit from a `sine target --recolor` target (GT: the synth's
+edits/texture) once texture editing is built; not faked here.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import html
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from render.configs import add_options, from_args, option, to_dict, validate
@@ -21,27 +43,92 @@ from render.io import read_json, read_label_map, read_mask, require_directory, w
 
 # The part painted by default: the one the object's ground-truth geometric edit stretches.
 DEFAULT_PART = {"toycar": "cabin", "figurine": "head"}
+EDIT_NAME = "geometric"  # RUN/edits/geometric, learnt from the synth's edits/geometric view K
+MASKS_EDIT = "demo"  # RUN/edits/demo/semantic_masks (the masks stage)
+EDIT_AZIMUTH = 110.0  # degrees: the default view K is the training view nearest this (a side view)
+
+# SfM on a turntable of a symmetric, sparsely textured object: neighbours only (no matches
+# between mirror-image views), affine SIFT with domain-size pooling.
+RECON = {
+    "exhaustive_below": 0,
+    "sequential_overlap": 4,
+    "sfm_affine_shape": True,
+    "sfm_domain_size_pooling": True,
+}
+# Defaults of the full run and of --fast: views, working width, orbit frames, summary rows, and
+# the stage options that differ from each command's defaults (the edit: iterations only).
+FULL = {
+    "views": 36,
+    "run_width": 256,
+    "orbit": 48,
+    "rows": 6,
+    "recon": RECON,
+    "fit": {"iterations": 600, "batch_rays": 1024},
+    "features": {},
+    "edit": {},
+}
+FAST = {
+    "views": 24,
+    "run_width": 128,
+    "orbit": 24,
+    "rows": 5,
+    "recon": {**RECON, "tsdf_voxel_size": 1 / 128, "target_triangles": 20_000},
+    "fit": {"iterations": 300, "batch_rays": 512, "log2_table": 15, "previews": 2},
+    "features": {"iterations": 150, "batch_rays": 2048, "log2_table": 13, "previews": 1},
+    "edit": {"iterations": 120, "previews": 0},
+}
 
 
 @dataclass
 class DemoConfig:
     """Options of `sine demo`."""
 
-    out: Path = option(Path("runs/demo"), "output folder (capture/, run/, demo_summary.json)")
+    out: Path = option(Path("runs/demo"), "output folder (summary.html/png, capture/, run/, ...)")
+    fast: bool = option(
+        False, "fewer views, a lower working resolution and fewer steps (minutes; for tests)"
+    )
     procedural: str = option("toycar", "built-in object to use", choices=["toycar", "figurine"])
-    views: int = option(36, "turntable views to render", low=3)
-    width: int = option(256, "image width in pixels", low=16)
-    height: int = option(256, "image height in pixels", low=16)
+    views: int | None = option(None, "turntable views to render (default 36; --fast 24)", low=3)
+    width: int = option(256, "synthetic image width in pixels (SfM runs on these)", low=16)
+    height: int = option(256, "synthetic image height in pixels", low=16)
+    run_width: int | None = option(
+        None, "working image width of the run (default 256; --fast 128)", low=16
+    )
     paint_part: str = option(
         "auto",
         "part painted in the editing view; auto = the part the GT geometric edit stretches "
         "(toycar: cabin, figurine: head)",
     )
-    edit_view: int = option(
-        11, "index of the editing view (the one the user would paint), below --views", low=0
+    edit_view: int | None = option(
+        None,
+        "index K of the edited view (synthetic image r_K), below --views; default: the "
+        f"training view nearest {EDIT_AZIMUTH:.0f} degrees azimuth (a side view)",
+        low=0,
     )
+    orbit: int | None = option(None, "frames of the orbit videos (default 48; --fast 24)", low=1)
     device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
     force: bool = option(False, "redo every stage instead of resuming finished ones")
+
+
+# ---- options ------------------------------------------------------------------------------
+def default_edit_view(views: int) -> int:
+    """The training view (not every 8th) of the synth ring nearest EDIT_AZIMUTH degrees."""
+    from recon.ingest import assign_splits
+
+    splits = assign_splits(views, 8)
+    gap = [abs((360.0 * i / views - EDIT_AZIMUTH + 180.0) % 360.0 - 180.0) for i in range(views)]
+    return min((i for i in range(views) if splits[i] == "train"), key=lambda i: gap[i])
+
+
+def resolved(cfg: DemoConfig) -> DemoConfig:
+    """`cfg` with every default that depends on --fast filled in."""
+    base = FAST if cfg.fast else FULL
+    return dataclasses.replace(
+        cfg,
+        views=cfg.views if cfg.views is not None else base["views"],
+        run_width=cfg.run_width if cfg.run_width is not None else base["run_width"],
+        orbit=cfg.orbit if cfg.orbit is not None else base["orbit"],
+    )
 
 
 def check_options(cfg: DemoConfig) -> str:
@@ -50,10 +137,11 @@ def check_options(cfg: DemoConfig) -> str:
 
     validate(cfg)
     require_directory(cfg.out, "--out")
-    if cfg.edit_view >= cfg.views:
+    views = cfg.views if cfg.views is not None else (FAST if cfg.fast else FULL)["views"]
+    if cfg.edit_view is not None and cfg.edit_view >= views:
         raise SineError(
-            f"--edit-view {cfg.edit_view} is out of range: the demo renders {cfg.views} views "
-            f"(0 to {cfg.views - 1})"
+            f"--edit-view {cfg.edit_view} is out of range: the demo renders {views} views "
+            f"(0 to {views - 1})"
         )
     part = DEFAULT_PART[cfg.procedural] if cfg.paint_part == "auto" else cfg.paint_part
     parts = sorted(build(cfg.procedural).mesh.part_names.values())
@@ -64,102 +152,527 @@ def check_options(cfg: DemoConfig) -> str:
     return part
 
 
-def run_demo(cfg: DemoConfig) -> dict:
-    from edit.feature_field_fit import FeaturesConfig, distill_features
-    from edit.part_masks import MasksConfig, semantic_masks
-    from recon.fit import FitConfig, fit_template
+def stage_configs(cfg: DemoConfig) -> dict:
+    """The options of every library stage, checked (cfg resolved)."""
+    from edit.feature_field_fit import FeaturesConfig
+    from edit.geometry_edit import GeometryEditConfig
+    from edit.part_masks import MasksConfig
+    from recon.fit import FitConfig
     from recon.ingest import IngestConfig
-    from recon.pipeline import ReconConfig, run_recon
+    from recon.pipeline import ReconConfig
+    from recon.synth import SynthConfig
+
+    base = FAST if cfg.fast else FULL
+    dev = {"device": cfg.device}
+    configs = {
+        "synth": SynthConfig(
+            out=cfg.out / "capture",
+            procedural=cfg.procedural,
+            views=cfg.views,
+            width=cfg.width,
+            height=cfg.height,
+            edit=["geometric", "texture"],
+        ),
+        "recon": ReconConfig(**base["recon"]),
+        "ingest": IngestConfig(width=cfg.run_width, ignore_poses=True),
+        "fit": FitConfig(**dev, **base["fit"]),
+        "features": FeaturesConfig(**dev, **base["features"]),
+        "masks": MasksConfig(**dev),
+        "edit": GeometryEditConfig(**dev, **base["edit"]),
+    }
+    for name in ("recon", "ingest", "fit", "features", "masks", "edit"):
+        validate(configs[name])  # synthesize() checks its own options
+    return configs
+
+
+# ---- stage bookkeeping (outputs that are not training stages) ------------------------------
+class Record:
+    """OUT/demo_state.json: the key (options + input files' mtimes) each output stage was made
+    with; a stage is skipped when its key is unchanged and its outputs exist."""
+
+    def __init__(self, out: Path, force: bool):
+        self.path = out / "demo_state.json"
+        self.state = read_json(self.path) if self.path.is_file() and not force else {}
+
+    def done(self, name: str, key: dict, outputs: list[Path]) -> bool:
+        return self.state.get(name) == key and all(Path(p).exists() for p in outputs)
+
+    def record(self, name: str, key: dict) -> None:
+        self.state[name] = key
+        write_json(self.path, self.state)
+
+
+def mtimes(*paths: Path) -> dict[str, int]:
+    return {str(p): p.stat().st_mtime_ns if p.exists() else 0 for p in paths}
+
+
+class Clock:
+    """Seconds per stage. `seconds`: this invocation; `work()`: the seconds of the invocation that
+    did each stage's work (a skipped stage keeps the one from the previous demo_summary.json)."""
+
+    def __init__(self, out: Path):
+        previous = out / "demo_summary.json"
+        self.previous = read_json(previous).get("seconds_work", {}) if previous.is_file() else {}
+        self.seconds: dict[str, float] = {}
+        self.skipped: set[str] = set()
+        self.t0 = time.perf_counter()
+
+    def start(self, name: str) -> None:
+        print(f"\n== sine demo: {name} ==", flush=True)
+        self.seconds[name] = time.perf_counter()
+
+    def finish(self, name: str, skipped: bool = False) -> None:
+        if skipped:
+            print(f"{name}: already done with these options")
+            self.skipped.add(name)
+        self.seconds[name] = round(time.perf_counter() - self.seconds[name], 1)
+
+    def work(self) -> dict[str, float]:
+        return {
+            k: self.previous.get(k, v) if k in self.skipped else v for k, v in self.seconds.items()
+        }
+
+
+# ---- pictures -----------------------------------------------------------------------------
+def resize(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    if image.shape[:2] == (height, width):
+        return image
+    return cv2.resize(image.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+
+
+def silhouette_iou(opacity: np.ndarray, mask: np.ndarray) -> float:
+    a, b = opacity > 0.5, mask > 0.5
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def object_psnr(pred: np.ndarray, gt: np.ndarray, pred_alpha, gt_mask) -> float:
+    from render.evaluation import psnr
+
+    sel = (pred_alpha > 0.5) | (gt_mask > 0.5)
+    return psnr(pred[sel], gt[sel])
+
+
+def text_strip(lines: list[str], width: int, scale: float = 0.4) -> np.ndarray:
+    """White strip [h, width, 3] with black text lines."""
+    step = int(22 * scale + 8)
+    strip = np.full((step * len(lines) + 6, width, 3), 255, np.uint8)  # OpenCV draws on 8 bits
+    for i, line in enumerate(lines):
+        cv2.putText(
+            strip, line, (4, step * (i + 1)), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 1,
+            cv2.LINE_AA,
+        )  # fmt: skip
+    return strip.astype(np.float32) / 255.0
+
+
+def sheet_rows(frames, k: int, rows: int) -> list[int]:
+    """View K first, then every held-out view, then training views spread around the ring."""
+    test = [i for i, c in enumerate(frames) if c.split == "test"]
+    chosen = [k] + [i for i in test if i != k]
+    for i in np.linspace(0, len(frames), 2 * rows, endpoint=False).astype(int):
+        if len(chosen) >= rows:
+            break
+        if all(abs(int(i) - j) > 1 for j in chosen):
+            chosen.append(int(i))
+    return chosen[:rows]
+
+
+def compare_views(template, edit, frames, rows: list[int], gt_dir: Path, k: int) -> dict:
+    """Renders template and edit at the views `rows`; per view the GT-edit image and mask.
+    Returns {"tiles": [row images], "views": [per-view numbers]}."""
+    from render.frames import label
+    from render.io import read_image
+
+    tiles, numbers = [], []
+    gap = np.ones((frames[0].height, 2, 3), np.float32)
+    for i in rows:
+        cam = frames[i]
+        stem = Path(cam.name).stem
+        gt = resize(read_image(gt_dir / "images" / f"{stem}.png"), cam.width, cam.height)
+        gt_mask = resize(
+            read_mask(gt_dir / "masks" / f"{stem}.png").astype(np.float32), cam.width, cam.height
+        )
+        before, after = template.render_view(cam), edit.render_view(cam)
+        b_rgb, a_rgb = np.clip(before["rgb"], 0, 1), np.clip(after["rgb"], 0, 1)
+        row = {
+            "view": cam.name,
+            "index": i,
+            "role": "edited view K" if i == k else ("held-out" if cam.split == "test" else "train"),
+            "edit_silhouette_iou": silhouette_iou(after["opacity"], gt_mask),
+            "template_silhouette_iou": silhouette_iou(before["opacity"], gt_mask),
+            "edit_psnr_object": object_psnr(a_rgb, gt, after["opacity"], gt_mask),
+            "template_psnr_object": object_psnr(b_rgb, gt, before["opacity"], gt_mask),
+        }
+        numbers.append(row)
+        tag = f"{stem} {'K' if i == k else ('held-out' if cam.split == 'test' else 'train')}"
+        tiles.append(
+            np.concatenate(
+                [
+                    label(b_rgb, f"{tag}"),
+                    gap,
+                    label(a_rgb, f"edit IoU {row['edit_silhouette_iou']:.2f}"),
+                    gap,
+                    label(gt, "ground truth"),
+                ],
+                axis=1,
+            )
+        )
+    return {"tiles": tiles, "views": numbers}
+
+
+def summary_sheet(tiles: list[np.ndarray], lines: list[str]) -> np.ndarray:
+    """Header (column names) + rows of template | edit | ground truth + the numbers."""
+    width = tiles[0].shape[1]
+    third = (width - 4) // 3
+    header = np.full((20, width, 3), 255, np.uint8)
+    for j, name in enumerate(("template", "edit (learnt)", "ground-truth edit")):
+        cv2.putText(
+            header, name, (j * (third + 2) + 4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1,
+            cv2.LINE_AA,
+        )  # fmt: skip
+    header = header.astype(np.float32) / 255.0
+    sep = np.ones((2, width, 3), np.float32)
+    body = [x for t in tiles for x in (t, sep)]
+    scale = 0.33 if width < 400 else 0.45
+    return np.concatenate([header, *body, text_strip(lines, width, scale)], axis=0)
+
+
+def compare_video(left_dir: Path, right_dir: Path, path: Path, fps: float) -> int:
+    """template | edit video from two folders of frames with the same names; frame count."""
+    from render.frames import side_by_side
+    from render.io import read_image
+    from render.video import VideoWriter
+
+    names = sorted(p.name for p in (left_dir / "rgb").glob("*.png"))
+    with VideoWriter(path, fps) as video:
+        for name in names:
+            video.write(
+                side_by_side(
+                    read_image(left_dir / "rgb" / name), read_image(right_dir / "rgb" / name)
+                )
+            )
+    return len(names)
+
+
+# ---- the demo -----------------------------------------------------------------------------
+def run_demo(cfg: DemoConfig) -> dict:
+    from edit.feature_field_fit import distill_features
+    from edit.geometry_edit import run_geometry_edit
+    from edit.part_masks import semantic_masks
+    from edit.targets import before_after, write_rgba
+    from recon.fit import fit_template
+    from recon.pipeline import run_recon
     from recon.report import mask_iou
     from recon.rundir import RunDir
-    from recon.synth import SynthConfig, synthesize
+    from recon.synth import synthesize
+    from render.io import read_image, write_image
 
     paint_part = check_options(cfg)
-    capture, run = cfg.out / "capture", RunDir(cfg.out / "run")
-    seconds: dict[str, float] = {}
-
-    def stage(name: str):
-        print(f"\n== sine demo: {name} ==", flush=True)
-        seconds[name] = time.perf_counter()
-
-    def done(name: str, result: dict) -> None:
-        if result.get("skipped"):
-            print(f"{name}: already done with these options")
-        seconds[name] = time.perf_counter() - seconds[name]
-
-    stage("synth")
-    synth_cfg = SynthConfig(
-        out=capture,
-        procedural=cfg.procedural,
-        views=cfg.views,
-        width=cfg.width,
-        height=cfg.height,
-        edit=["geometric", "texture"],
-    )
+    cfg = resolved(cfg)
+    configs = stage_configs(cfg)
+    out = cfg.out
+    capture, run = out / "capture", RunDir(out / "run")
+    gt_dir = capture / "edits" / "geometric"
+    k = cfg.edit_view if cfg.edit_view is not None else default_edit_view(cfg.views)
+    k_name = f"r_{k:03d}.png"
+    clock = Clock(out)
+    clock.start("synth")
+    synth_cfg = configs["synth"]
     recorded = capture / "synth.json"
     same = recorded.is_file() and read_json(recorded).get("config") == to_dict(synth_cfg)
     force = cfg.force or not same  # a new capture: every later stage is redone
     if force:
         synthesize(synth_cfg)
     labels_dir = capture / "labels"
-    part_id = {n: int(k) for k, n in read_json(capture / "parts.json").items()}[paint_part]
-    names = sorted(p.name for p in labels_dir.glob("*.png"))
-    if not (read_label_map(labels_dir / names[cfg.edit_view]) == part_id).any():
-        raise SineError(
-            f"the {paint_part} is not visible in view {cfg.edit_view}: choose another --edit-view"
-        )
-    done("synth", {"skipped": not force})
+    part_id = {n: int(v) for v, n in read_json(capture / "parts.json").items()}[paint_part]
+    if not (read_label_map(labels_dir / k_name) == part_id).any():
+        raise SineError(f"the {paint_part} is not visible in view {k}: choose another --edit-view")
+    clock.finish("synth", not force)
+    record = Record(out, force)  # what the stages that are not training stages were made from
 
-    stage("recon")
-    report = run_recon(capture, run, ReconConfig(), IngestConfig(force=force))
-    done("recon", {})
+    clock.start("recon")
+    inputs = (run.cameras, run.proxy_mesh)
+    before = mtimes(*inputs)
+    ingest_cfg = dataclasses.replace(configs["ingest"], force=force)
+    report = run_recon(capture, run, configs["recon"], ingest_cfg)
+    unchanged = mtimes(*inputs) == before
+    force = force or not unchanged  # new poses or proxy: retrain what follows
+    clock.finish("recon", unchanged)
+    frames = run.load_cameras().frames
+    names = [c.name for c in frames]
+    if k_name not in names:
+        raise SineError(f"view {k_name} was not registered by SfM: choose another --edit-view")
+    k_run = names.index(k_name)  # view K's index among the run's cameras
 
-    stage("fit")
-    template = fit_template(run.root, FitConfig(device=cfg.device), force=force)
-    done("fit", template)
+    clock.start("fit")
+    template_metrics = fit_template(run.root, configs["fit"], force=force)
+    force = force or not template_metrics.get("skipped")
+    clock.finish("fit", bool(template_metrics.get("skipped")))
 
-    stage("features")
-    features = distill_features(run.root, FeaturesConfig(device=cfg.device), force=force)
-    done("features", features)
+    clock.start("features")
+    features = distill_features(run.root, configs["features"], force=force)
+    clock.finish("features", bool(features.get("skipped")))
 
-    stage("masks")
-    cameras = run.load_cameras().frames
-    edit_cam = cameras[cfg.edit_view]
-    labels = {c.name: read_label_map(labels_dir / c.name) for c in cameras}
-    region = labels[edit_cam.name] == part_id
-    masks_dir = run.edit("demo") / "semantic_masks"
-    semantic_masks(run.root, cfg.edit_view, region, masks_dir, MasksConfig(device=cfg.device))
+    clock.start("masks")
+    edit_cam = frames[k_run]
+
+    def labels_of(name: str, like) -> np.ndarray:  # GT labels at the run's image size
+        lab = read_label_map(labels_dir / name)
+        if lab.shape == like:
+            return lab
+        small = cv2.resize(lab.astype(np.uint16), like[::-1], interpolation=cv2.INTER_NEAREST)
+        return small.astype(np.int32)
+
+    size = (edit_cam.height, edit_cam.width)
+    region = labels_of(edit_cam.name, size) == part_id
+    masks_dir = run.edit(MASKS_EDIT) / "semantic_masks"
+    key = {"view": k_name, "part": paint_part, "fields": mtimes(run.features / "field.pt")}
+    skip = record.done("masks", key, [masks_dir / "metrics.json"])
+    if not skip:
+        semantic_masks(run.root, k_run, region, masks_dir, configs["masks"])
+        record.record("masks", key)
     ious = {
         c.name: mask_iou(
-            read_mask(masks_dir / "masks" / (Path(c.name).stem + ".png")), labels[c.name] == part_id
+            read_mask(masks_dir / "masks" / (Path(c.name).stem + ".png")),
+            labels_of(c.name, size) == part_id,
         )
-        for c in cameras
+        for c in frames
         if c.split == "test"
     }
-    seconds["masks"] = time.perf_counter() - seconds["masks"]
+    clock.finish("masks", skip)
+
+    clock.start("target")
+    gt_rgb = resize(read_image(gt_dir / "images" / k_name), edit_cam.width, edit_cam.height)
+    gt_alpha = resize(read_mask(gt_dir / "masks" / k_name).astype(np.float32), *size[::-1])
+    background = synth_cfg.background
+    target = out / "target.png"
+    write_rgba(target, gt_rgb, gt_alpha, background)
+    before_k = resize(read_image(run.image_path(k_name)), edit_cam.width, edit_cam.height)
+    write_image(out / "target_before_after.png", before_after(before_k, gt_rgb))
+    clock.finish("target")
+
+    clock.start("edit")
+    edit_metrics = run_geometry_edit(
+        run.root, k_run, target, EDIT_NAME, configs["edit"], force=force
+    )
+    clock.finish("edit", bool(edit_metrics.get("skipped")))
+
+    outputs = output_stages(cfg, run, gt_dir, k_run, record, clock)
 
     summary = {
         "object": cfg.procedural,
+        "fast": cfg.fast,
         "views": cfg.views,
+        "synth_size": [cfg.width, cfg.height],
+        "run_size": [edit_cam.width, edit_cam.height],
         "registered_views": report.get("registered_views"),
+        "pose_source": report.get("pose_source"),
         "proxy_triangles": report.get("proxy_triangles"),
         "silhouette_iou_mean": report.get("silhouette_iou_mean"),
-        "template_heldout_psnr": template.get("heldout_psnr"),
-        "template_heldout_ssim": template.get("heldout_ssim"),
+        "template_heldout_psnr": template_metrics.get("heldout_psnr"),
+        "template_heldout_ssim": template_metrics.get("heldout_ssim"),
         "features_heldout_cosine": features.get("heldout_cosine"),
         "painted_part": paint_part,
         "semantic_mask_heldout_iou_mean": float(np.mean(list(ious.values()))),
         "semantic_mask_heldout_iou": ious,
-        "seconds": {k: round(v, 1) for k, v in seconds.items()},
+        "edit_view": k_name,
+        "edit_view_index": k_run,
+        "edit_method": edit_metrics.get("method"),
+        "edit_iterations": edit_metrics.get("iterations"),
+        **outputs["numbers"],
+        "edit_training_metrics": {
+            key: edit_metrics.get(key)
+            for key in ("edited_view_psnr_object", "edited_view_silhouette_iou", "train_seconds")
+        },
+        "files": outputs["files"],
+        "seconds": clock.seconds,
+        "seconds_work": clock.work(),
         "config": to_dict(cfg),
     }
-    write_json(cfg.out / "demo_summary.json", summary)
+    summary["seconds_total"] = round(time.perf_counter() - clock.t0, 1)
+    summary["seconds_work_total"] = round(sum(summary["seconds_work"].values()), 1)
+    write_json(out / "demo_summary.json", summary)
+    write_html(out, summary, outputs["rows"])
     return summary
+
+
+def output_stages(cfg: DemoConfig, run, gt_dir: Path, k: int, record, clock: Clock) -> dict:
+    """render / export / view / eval / summary pictures; returns numbers, files, sheet rows."""
+    from edit.eval_cli import evaluate
+    from edit.export_cli import export_mesh
+    from edit.scene import load_scene
+    from edit.view_cli import viewer_scene
+    from render.camera_paths import orbit_cameras
+    from render.frames import render_frames
+    from render.viewer import screenshot
+
+    out = cfg.out
+    fields = mtimes(run.template / "field.pt", run.edit(EDIT_NAME) / "edit_field.pt")
+    template = load_scene(run.root, None, device=cfg.device)
+    edit = load_scene(run.root, EDIT_NAME, device=cfg.device)
+    frames = run.load_cameras().frames
+    files = {
+        "summary_png": "summary.png",
+        "summary_html": "summary.html",
+        "target": "target.png",
+        "target_before_after": "target_before_after.png",
+        "template_video": "template.mp4",
+        "edit_video": "edit.mp4",
+        "compare_video": "compare.mp4",
+        "template_mesh": "template.glb",
+        "edited_mesh": "edited.glb",
+        "viewer": "viewer.png",
+    }
+
+    clock.start("render")
+    key = {"orbit": cfg.orbit, "fields": fields}
+    paths = [out / files[f] for f in ("template_video", "edit_video", "compare_video")]
+    skip = record.done("render", key, paths)
+    if not skip:
+        cams = orbit_cameras(frames, cfg.orbit)
+        fps = max(8.0, cfg.orbit / 5.0)  # one turn in about 5 s
+        render_frames(template, cams, out / "orbit" / "template", video=paths[0], fps=fps)
+        render_frames(edit, cams, out / "orbit" / "edit", video=paths[1], fps=fps)
+        compare_video(out / "orbit" / "template", out / "orbit" / "edit", paths[2], fps)
+        record.record("render", key)
+    clock.finish("render", skip)
+
+    clock.start("export")
+    key = {"fields": fields}
+    meshes = {"template_mesh": template, "edited_mesh": edit}
+    skip = record.done("export", key, [out / files[f] for f in meshes])
+    if not skip:
+        for f, scene in meshes.items():
+            stats = export_mesh(scene, out / files[f])
+            print(f"export: {stats['vertices']} vertices ({scene.name}) -> {out / files[f]}")
+        record.record("export", key)
+    clock.finish("export", skip)
+
+    clock.start("view")
+    key = {"fields": fields}
+    skip = record.done("view", key, [out / files["viewer"]])
+    if not skip:
+        try:
+            screenshot(viewer_scene(run.root, EDIT_NAME, device=cfg.device), out / files["viewer"])
+            record.record("view", key)
+        except SineError as exc:  # no EGL / display: everything else is still worth having
+            print(f"view: no screenshot ({exc})")
+            files.pop("viewer")
+    clock.finish("view", skip)
+
+    clock.start("eval")
+    key = {"fields": fields, "gt": str(gt_dir)}
+    evals = {"edit": out / "eval_edit.json", "template": out / "eval_template_vs_gt_edit.json"}
+    skip = record.done("eval", key, list(evals.values()))
+    if not skip:
+        for which, path in evals.items():
+            name = EDIT_NAME if which == "edit" else None
+            result = evaluate(run.root, name, gt_dir, split="test", device=cfg.device)
+            write_json(path, result)
+        record.record("eval", key)
+    clock.finish("eval", skip)
+    mean = {which: read_json(path)["mean"] for which, path in evals.items()}
+
+    clock.start("summary")
+    rows = sheet_rows(frames, k, (FAST if cfg.fast else FULL)["rows"])
+    views = compare_views(template, edit, frames, rows, gt_dir, k)
+    held = [v for v in views["views"] if v["role"] == "held-out"]
+    edited = views["views"][0]
+    numbers = {
+        "edit_heldout_psnr": mean["edit"].get("psnr"),
+        "edit_heldout_psnr_object": mean["edit"].get("psnr_object"),
+        "edit_heldout_ssim": mean["edit"].get("ssim"),
+        "template_vs_gt_edit_heldout_psnr": mean["template"].get("psnr"),
+        "template_vs_gt_edit_heldout_psnr_object": mean["template"].get("psnr_object"),
+        "edit_heldout_silhouette_iou": float(np.mean([v["edit_silhouette_iou"] for v in held])),
+        "template_vs_gt_edit_heldout_silhouette_iou": float(
+            np.mean([v["template_silhouette_iou"] for v in held])
+        ),
+        "edited_view_silhouette_iou": edited["edit_silhouette_iou"],
+        "edited_view_psnr_object": edited["edit_psnr_object"],
+        "template_vs_gt_edit_edited_view_silhouette_iou": edited["template_silhouette_iou"],
+        "views_compared": views["views"],
+    }
+    clock.finish("summary", False)
+    return {"numbers": numbers, "files": files, "rows": views["tiles"]}
+
+
+def summary_lines(s: dict) -> list[str]:
+    """The numbers of the summary, one short line each."""
+    f = lambda x, d=2: "n/a" if x is None else f"{x:.{d}f}"  # noqa: E731
+    return [
+        f"{s['object']}, {s['views']} views, SfM poses {s['registered_views']}/{s['views']}; "
+        f"template held-out PSNR {f(s['template_heldout_psnr'])} dB",
+        f"semantic masks ({s['painted_part']}) held-out IoU "
+        f"{f(s['semantic_mask_heldout_iou_mean'], 3)}",
+        f"edit vs GT, held-out: PSNR {f(s['edit_heldout_psnr'])} dB "
+        f"(template {f(s['template_vs_gt_edit_heldout_psnr'])}), sil. IoU "
+        f"{f(s['edit_heldout_silhouette_iou'], 3)} "
+        f"(template {f(s['template_vs_gt_edit_heldout_silhouette_iou'], 3)})",
+        f"edited view {Path(s['edit_view']).stem}: sil. IoU {f(s['edited_view_silhouette_iou'], 3)}"
+        f" (template {f(s['template_vs_gt_edit_edited_view_silhouette_iou'], 3)}), object PSNR "
+        f"{f(s['edited_view_psnr_object'])} dB",
+    ]
+
+
+def write_html(out: Path, s: dict, tiles: list[np.ndarray]) -> None:
+    """OUT/summary.png and OUT/summary.html (pictures and videos referenced next to it)."""
+    from render.io import write_image, write_text_atomic
+
+    lines = summary_lines(s)
+    write_image(out / "summary.png", summary_sheet(tiles, lines))
+    files = s["files"]
+    rel = {
+        "recon contact sheet": "run/recon_contact_sheet.png",
+        "semantic masks": f"run/edits/{MASKS_EDIT}/semantic_masks/overlay_contact_sheet.png",
+        "shape prior": f"run/edits/{EDIT_NAME}/prior_preview.png",
+        "edited view: template | edit | target": f"run/edits/{EDIT_NAME}/edited_view.png",
+    }
+    rows = "".join(
+        f"<tr><td>{html.escape(k)}</td><td>{v:.4g}</td></tr>"
+        if isinstance(v, float)
+        else f"<tr><td>{html.escape(k)}</td><td>{html.escape(str(v))}</td></tr>"
+        for k, v in s.items()
+        if isinstance(v, (int, float, str)) and k != "config"
+    )
+    videos = "".join(
+        f'<figure><video src="{files[v]}" controls loop autoplay muted></video>'
+        f"<figcaption>{v.replace('_', ' ')}</figcaption></figure>"
+        for v in ("template_video", "edit_video", "compare_video")
+    )
+    pictures = "".join(
+        f'<figure><img src="{p}"><figcaption>{html.escape(c)}</figcaption></figure>'
+        for c, p in [
+            ("editing target (left: the capture of view K, right: the ground-truth edit)",
+             files["target_before_after"]),
+            *([("viewer: template | edited mesh", files["viewer"])] if "viewer" in files else []),
+            *rel.items(),
+        ]
+        if (out / p).is_file()
+    )  # fmt: skip
+    page = f"""<!doctype html>
+<html><head><meta charset="utf-8"><title>sine demo</title>
+<style>body{{font-family:sans-serif;margin:1em}} img,video{{max-width:100%}}
+figure{{display:inline-block;vertical-align:top;margin:0.5em}} td{{padding:0 1em}}</style>
+</head><body>
+<h1>sine demo: {html.escape(s["object"])}, one geometric edit</h1>
+<p>{"<br>".join(html.escape(x) for x in lines)}</p>
+<figure><img src="{files["summary_png"]}"><figcaption>rows: views around the ring (K = the
+edited view); columns: template | edit | ground-truth edit</figcaption></figure>
+{videos}
+<p>Meshes (capture units, vertex colours): <a href="{files["template_mesh"]}">template</a>,
+<a href="{files["edited_mesh"]}">edited</a>.
+Numbers: <a href="demo_summary.json">demo_summary.json</a>,
+<a href="eval_edit.json">eval_edit.json</a>.</p>
+{pictures}
+<table>{rows}</table>
+</body></html>
+"""
+    write_text_atomic(out / "summary.html", page)
 
 
 DESCRIPTION = __doc__
 NAME = "demo"
-HELP = "run the whole pipeline on the built-in procedural object"
+HELP = "run the whole pipeline on a built-in procedural object, with one geometric edit"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -170,20 +683,17 @@ def run(args: argparse.Namespace) -> int:
     summary = run_demo(from_args(DemoConfig, args))
     out = Path(args.out)
     print("\n== sine demo: summary ==")
-    for key in (
-        "registered_views",
-        "silhouette_iou_mean",
-        "template_heldout_psnr",
-        "template_heldout_ssim",
-        "semantic_mask_heldout_iou_mean",
-    ):
-        print(f"  {key}: {summary[key]}")
-    print(f"  seconds per stage: {summary['seconds']}")
-    print(f"\nLook at: {out / 'run' / 'recon_contact_sheet.png'}")
-    print(f"         {out / 'run' / 'template' / 'previews'}/ (held-out renders vs ground truth)")
-    print(f"         {out / 'run' / 'features' / 'previews'}/ (feature-field PCA)")
-    print(
-        f"         {out / 'run' / 'edits' / 'demo' / 'semantic_masks' / 'overlay_contact_sheet.png'}"
-    )
+    for line in summary_lines(summary):
+        print(f"  {line}")
+    print(f"  seconds per stage: {summary['seconds']} (total {summary['seconds_total']})")
+    if summary["seconds_work_total"] != summary["seconds_total"]:
+        print(f"  (with the skipped stages' own time: {summary['seconds_work_total']} s)")
+    print(f"\nLook at: {out / 'summary.png'} (views x template | edit | ground truth)")
+    print(f"         {out / 'summary.html'} (everything below, with the videos)")
+    print(f"         {out / 'compare.mp4'} (orbit: template | edit)")
+    if "viewer" in summary["files"]:
+        print(f"         {out / 'viewer.png'} (template and edited mesh, cameras)")
+    print(f"         {out / 'edited.glb'} (the edited mesh, for Blender / MeshLab)")
+    print(f"         {out / 'run' / 'recon_contact_sheet.png'} (reconstruction)")
     print(f"Numbers: {out / 'demo_summary.json'}")
     return 0
