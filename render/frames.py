@@ -41,12 +41,13 @@ def label(image: np.ndarray, text: str) -> np.ndarray:
     """`text` written in the top-left corner of an image [H, W, 3] (skipped below 96 px)."""
     if image.shape[1] < 96:
         return image
-    out = np.ascontiguousarray(image.copy())
+    # OpenCV 5 draws text on 8-bit images only
+    out = np.ascontiguousarray((np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8))
     scale = max(0.35, image.shape[0] / 600.0)
     pos = (4, int(22 * scale) + 4)  # baseline below a text line of height ~22 * scale
     cv2.putText(out, text, pos, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
-    cv2.putText(out, text, pos, cv2.FONT_HERSHEY_SIMPLEX, scale, (1, 1, 1), 1, cv2.LINE_AA)
-    return out
+    cv2.putText(out, text, pos, cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
+    return out.astype(np.float32) / 255.0
 
 
 def side_by_side(left: np.ndarray, right: np.ndarray, names=("template", "edit")) -> np.ndarray:
