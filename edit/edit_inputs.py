@@ -82,23 +82,38 @@ def read_region(path, size: tuple[int, int]) -> np.ndarray:
 
 
 def difference_region(
-    target: Target, template_rgb: np.ndarray, template_alpha: np.ndarray, dilate_px: int
+    target: Target,
+    template_rgb: np.ndarray,
+    template_alpha: np.ndarray,
+    dilate_px: int,
+    follow_silhouette: bool = False,
 ) -> np.ndarray:
     """[H, W] bool where target and template differ (silhouette, or colour by > 0.15 after a
     slight blur), dilated; raises "nothing to edit" when they do not differ.
 
     The blur and an opening (5x5) keep the template's own rendering error (thin details it renders
-    soft) out of the region: what remains are areas the edit changed."""
+    soft) out of the region: what remains are areas the edit changed. `follow_silhouette`
+    (geometric edits): when the silhouette changed, only colour changes connected to a silhouette
+    change count (a shape edit moves its part's outline; isolated colour differences elsewhere are
+    the template's rendering error, e.g. a capture used as the target)."""
+    opened = np.ones((5, 5), np.uint8)
     sil_diff = (target.silhouette > 0.5) != (template_alpha > 0.5)
-    blur = (lambda im: cv2.GaussianBlur(im, (0, 0), 1.5))  # noqa: E731
+    sil_diff = cv2.morphologyEx(sil_diff.astype(np.uint8), cv2.MORPH_OPEN, opened)
+    blur = lambda im: cv2.GaussianBlur(im, (0, 0), 1.5)  # noqa: E731
     colour_diff = np.abs(blur(target.rgb) - blur(template_rgb)).max(axis=-1) > 0.15
-    changed = (sil_diff | colour_diff).astype(np.uint8)
-    changed = cv2.morphologyEx(changed, cv2.MORPH_OPEN, np.ones((5, 5), np.uint8))
+    changed = ((sil_diff > 0) | colour_diff).astype(np.uint8)
+    changed = cv2.morphologyEx(changed, cv2.MORPH_OPEN, opened)
     if changed.sum() < 0.0005 * changed.size:
         raise SineError(
             "nothing to edit: the target matches the template's rendering of this view; "
             "edit the snapshot (`sine snapshot`) or make a target with `sine target`"
         )
+    if follow_silhouette and sil_diff.any():
+        # components of the change (bridged over a few pixels) that contain a silhouette change
+        bridged = cv2.dilate(changed, np.ones((2 * dilate_px + 1,) * 2, np.uint8))
+        _, labels = cv2.connectedComponents(bridged)
+        keep = np.unique(labels[(sil_diff > 0) & (bridged > 0)])
+        changed = changed * np.isin(labels, keep[keep > 0])
     size = 2 * dilate_px + 1
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
-    return cv2.dilate(changed, kernel) > 0
+    return cv2.dilate(changed.astype(np.uint8), kernel) > 0

@@ -22,7 +22,8 @@ trained with L_geo = w_gp L_gp + L_gt + w_gr L_gr + w_cyc L_cyc + w_reg L_reg:
 - L_gr: smoothness of F_dG at points around the edited surface;
 - L_cyc: F_dG and F'_dG invert each other at uniform points and surface points;
 - L_reg: neither field moves the surface the prior left in place (points in the sampling band
-  around it), and view K's rays outside the editable region keep the template's colours.
+  around it) nor does F_dT colour it, and view K's rays outside the editable region keep the
+  template's colours.
 Rays are sampled in the band around the union of F'_dG(proxy) and M_P (rebuilt every
 `rebuild_every` steps), so the edited surface is sampled before F'_dG has learnt to reach it.
 
@@ -101,7 +102,9 @@ class GeometryEditConfig:
         1.0, "weight of the regularisation L_reg outside the edited region", low=0
     )
     w_silhouette: float = option(1.0, "weight of the silhouette BCE inside L_gt", low=0)
-    prior_points: int = option(2000, "proxy / prior vertices in L_gp per step", low=1)
+    prior_points: int = option(
+        2000, "random proxy / prior vertices per step estimating L_gp's sum over the mesh", low=1
+    )
     cycle_points: int = option(1000, "points of L_cyc per step (the paper's M = 1000)", low=2)
     smooth_points: int = option(1000, "points of L_gr per step", low=1)
     anchor_points: int = option(1000, "unmoved surface points of L_reg per step", low=1)
@@ -177,7 +180,7 @@ def prepare(
     if region is not None:
         editable = read_region(region, size)
     else:
-        editable = difference_region(tgt, t_rgb, t_alpha, cfg.region_dilate)
+        editable = difference_region(tgt, t_rgb, t_alpha, cfg.region_dilate, follow_silhouette=True)
     proxy = sampler.raycaster
     vertices, triangles = proxy.vertices.copy(), proxy.triangles.copy()
     prior = None
@@ -456,15 +459,20 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
         uniform = torch.rand(cfg.cycle_points // 2, 3, generator=gen).to(device) * 2 - 1
         cyc_pts = torch.cat([uniform, jittered(surface, cfg.cycle_points - len(uniform))])
         eps = cfg.jitter * torch.randn(cfg.smooth_points, 3, generator=gen).to(device)
-        if len(unmoved):  # both fields leave the unedited surface (and its band) in place
+        if len(unmoved):
+            # both fields leave the unedited surface (and its band) in place and F_dT adds no
+            # colour there: its hash table, trained on view K alone, would otherwise leak the
+            # edited view's colours into unseen parts through hash collisions
             still = pick(unmoved, cfg.anchor_points)
             still = still + 0.5 * cfg.band_width * torch.randn(still.shape, generator=gen).to(
                 device
             )
             reg = reg + losses.displacement_l1(deform, still) + losses.displacement_l1(fwd, still)
+            reg = reg + editing.texture(still).abs().sum(dim=-1).mean()
         return {
             **terms,
-            "gp": cfg.w_gp * prior_term(proxy_v[sub], prior_v[sub]),
+            # the paper's L_gp sums over the whole mesh: estimated from the random subset
+            "gp": cfg.w_gp * len(proxy_v) / len(sub) * prior_term(proxy_v[sub], prior_v[sub]),
             "cyc": cfg.w_cyc * losses.cycle(deform, fwd, cyc_pts),
             "gr": cfg.w_gr
             * losses.deformation_smoothness(deform, jittered(prior_v, cfg.smooth_points), eps),
