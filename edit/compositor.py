@@ -7,7 +7,7 @@ the same weights, `edit.editing_field.edited_query`) into the edited view I:
     encoder  conv3x3 6 -> 16, ReLU    e1 [B, 16, H, W]
              conv3x3 16 -> 32 stride 2, ReLU
                                       e2 [B, 32, H/2, W/2]
-    decoder  upsample x2 (bilinear), conv3x3 32 -> 16, ReLU
+    decoder  upsample x2 (bilinear, cropped to H, W), conv3x3 32 -> 16, ReLU
              concat with e1 (skip), conv3x3 32 -> 16, ReLU
              conv3x3 16 -> 3 (the head)
     output   I = sigmoid(logit(clamp(I_o + I_m, eps, 1 - eps)) + head)
@@ -19,6 +19,10 @@ starts at the template. The sum in the base keeps F_dT's colours on a direct pat
 from the first step (with a zero head nothing else would reach them); the UNet then learns the
 blending the per-point field cannot: a colour mapping shared by all views, which carries a change
 seen in one view to the part's pixels in every other view. The output is a sigmoid, in (0, 1).
+
+Every layer is a 3x3 convolution, a x2 down- or up-sampling: the network commutes with shifts of
+the image by an even number of pixels and each output pixel depends on input pixels at most 7
+away, so `edit.deferred.image_tiles` (even tiles, halo 8) computes it tile by tile exactly.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ import torch.nn.functional as F
 from torch import nn
 
 EPS = 1e-4  # the base image is clamped to [EPS, 1 - EPS] before the logit
+HALO = 8  # pixels around a tile that cover the receptive field (see the module doc)
 
 
 def _conv(c_in: int, c_out: int, stride: int = 1) -> nn.Conv2d:
@@ -51,7 +56,8 @@ class Compositor(nn.Module):
         """The head's logit residual [B, 3, H, W] (zero before training)."""
         e1 = F.relu(self.enc1(torch.cat([template, modification], dim=1)))
         e2 = F.relu(self.enc2(e1))
-        up = F.interpolate(e2, size=e1.shape[-2:], mode="bilinear", align_corners=False)
+        up = F.interpolate(e2, scale_factor=2.0, mode="bilinear", align_corners=False)
+        up = up[..., : e1.shape[-2], : e1.shape[-1]]  # odd sizes: one row / column more
         d2 = F.relu(self.dec2(up))
         d1 = F.relu(self.dec1(torch.cat([d2, e1], dim=1)))
         return self.head(d1)

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from render.configs import add_options, from_args
+from render.errors import SineError
 
 NAME = "edit"
 HELP = "learn a 3D edit from one edited image of a view (RUN/edits/NAME/)"
@@ -21,6 +22,15 @@ prior_mesh.ply and prior_preview.png: check it), then the editing field is train
 paper's losses. --method naive fine-tunes the template on the single view instead (a baseline).
 
 Writes RUN/edits/NAME/ (target, region, prior mesh, edit_field.pt, metrics.json, previews/).
+
+Texture (--mode texture): the target is view K repainted (`sine target --recolor/--paint` makes
+one); --region is the repainted part (else where target and template differ). Or --reference
+PHOTO: a photo of another object whose look the edited part takes (unaligned; --region then
+limits the part, else the whole object changes). The texture field F_dT and a 2D compositor learn
+the edit from view K and a DINO texture loss on views all around (deferred back-propagation);
+semantic masks from RUN/features (`sine features`) keep the rest of the object unchanged.
+--no-compositor and --method naive are baselines.
+
 An interrupted edit resumes when re-run; changed options train it again; --force starts over.
 
 examples:
@@ -29,19 +39,30 @@ examples:
   sine target runs/car --view 9 --warp "130,70>130,40" --out t.png && \\
       sine edit runs/car --target t.png --view 9 --name warp --symmetric
   sine render runs/car --edit taller --orbit 60 --video taller.mp4 --out renders/
+  sine target runs/car --view 9 --recolor --region part.png --hue 120 --out red.png && \\
+      sine edit runs/car --target red.png --view 9 --region part.png --mode texture --name red
+  sine edit runs/car --reference photo.png --view 9 --mode texture --name look
 """
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    import dataclasses
+
     from edit.geometry_edit import GeometryEditConfig
+    from edit.texture_edit import TextureEditConfig
 
     parser.add_argument("run", type=Path, help="run directory with a fitted template")
-    parser.add_argument("--target", type=Path, required=True, help="the edited image of view K")
+    parser.add_argument(
+        "--target", type=Path, help="the edited image of view K (texture: or --reference)"
+    )
     parser.add_argument(
         "--view", type=int, required=True, help="index K of the edited view (cameras.json order)"
     )
     parser.add_argument(
-        "--mode", choices=["geometry"], default="geometry", help="what the edit changes"
+        "--mode", choices=["geometry", "texture"], default="geometry", help="what the edit changes"
+    )
+    parser.add_argument(
+        "--reference", type=Path, help="texture: a photo of another object whose look to take"
     )
     parser.add_argument("--name", default="edit", help="the edit's name: RUN/edits/NAME")
     parser.add_argument(
@@ -53,11 +74,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--force", action="store_true", help="start over, ignoring checkpoints")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_options(parser, GeometryEditConfig)
+    # options of both modes have one default (tests/test_edit_texture.py checks): added once
+    shared = tuple(f.name for f in dataclasses.fields(GeometryEditConfig))
+    add_options(parser, TextureEditConfig, skip=shared)
 
 
 def run(args: argparse.Namespace) -> int:
     from edit.geometry_edit import GeometryEditConfig, run_geometry_edit
 
+    if args.mode == "texture":
+        return run_texture(args)
+    if args.target is None:
+        raise SineError("--target is required (the edited image of view K)")
+    if args.reference is not None:
+        raise SineError("--reference is for --mode texture")
     cfg = from_args(GeometryEditConfig, args)
     metrics = run_geometry_edit(
         args.run,
@@ -80,5 +110,39 @@ def run(args: argparse.Namespace) -> int:
         f"{metrics['edited_view_psnr_object']:.2f} dB, silhouette IoU "
         f"{metrics['edited_view_silhouette_iou']:.3f} -> {where} (look at edited_view.png, "
         f"prior_preview.png and previews/)"
+    )
+    return 0
+
+
+def run_texture(args: argparse.Namespace) -> int:
+    from edit.texture_edit import TextureEditConfig, run_texture_edit
+
+    if args.mask is not None:
+        raise SineError("--mask is for --mode geometry (a texture edit keeps the silhouette)")
+    cfg = from_args(TextureEditConfig, args)
+    metrics = run_texture_edit(
+        args.run,
+        args.view,
+        args.target,
+        args.name,
+        cfg,
+        region=args.region,
+        reference=args.reference,
+        force=args.force,
+        progress=not args.quiet,
+    )
+    where = args.run / "edits" / args.name
+    if metrics.get("skipped"):
+        print(f"edit {args.name}: already done with these options -> {where} (--force redoes it)")
+        return 0
+    fit = ""
+    if "edited_view_psnr_region" in metrics:
+        fit = f"edited part of view {args.view}: PSNR {metrics['edited_view_psnr_region']:.2f} dB, "
+    kept = metrics.get("unedited_view_psnr")
+    kept = f"unedited pixels {kept:.2f} dB" if kept is not None else "no unedited pixels"
+    print(
+        f"edit {args.name} (texture, {metrics['method']}): {metrics['iterations']} steps in "
+        f"{metrics['train_seconds']:.0f} s; {fit}{kept} -> {where} (look at edited_view.png "
+        f"and previews/)"
     )
     return 0

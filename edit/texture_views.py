@@ -8,8 +8,8 @@ Then the modification image of any range of pixels is
 
     I_m(p) = sum over its samples s of w_s * m'(x_s)          (`render_modification`)
 
-one F_dT query per kept sample and no template query at all; `edit.deferred` re-renders it chunk
-by chunk with a graph. `jittered_camera` perturbs a pose for L_tex's augmentation, and
+one F_dT query per kept sample and no template query at all, `chunk` samples at a time in both
+the forward and the backward pass (so its memory does not grow with the image). `jittered_camera` perturbs a pose for L_tex's augmentation, and
 `vertex_labels` / `labels_to_editable` give the proxy-lifted editable mask (when the run has no
 feature field for semantic masks).
 """
@@ -39,18 +39,21 @@ class ViewSamples:
     offsets: torch.Tensor  # [P + 1] int64
     editable: torch.Tensor | None = None  # [P] bool: where L_reg does not apply
     template_sim: torch.Tensor | None = None  # [1, T, T] DINO self-similarity of I_o
+    shape: tuple[int, int] | None = None  # (h, w) of a crop; None: the camera's image
+    goal: torch.Tensor | None = None  # [P, 3] target colours (the edited view)
 
     @property
     def size(self) -> tuple[int, int]:
-        """(H, W) of the pixels when they form a full image (the camera's)."""
-        return self.camera.height, self.camera.width
+        """(H, W) of the pixels as an image (the camera's, or the crop's)."""
+        return self.shape or (self.camera.height, self.camera.width)
 
     @property
     def n_pixels(self) -> int:
         return int(self.template_rgb.shape[0])
 
-    def subset(self, pixels: torch.Tensor) -> ViewSamples:
-        """The view restricted to `pixels` [Q] (int64 indices, in the order given)."""
+    def subset(self, pixels: torch.Tensor, shape: tuple[int, int] | None = None) -> ViewSamples:
+        """The view restricted to `pixels` [Q] (int64 indices, in the order given; `shape`: the
+        (h, w) they form, h * w = Q)."""
         starts, stops = self.offsets[pixels], self.offsets[pixels + 1]
         counts = stops - starts  # [Q]
         offsets = torch.zeros(len(pixels) + 1, dtype=torch.int64, device=counts.device)
@@ -68,7 +71,16 @@ class ViewSamples:
             pixel=torch.repeat_interleave(torch.arange(len(pixels), device=counts.device), counts),
             offsets=offsets,
             editable=None if self.editable is None else self.editable[pixels],
+            shape=shape,
+            goal=None if self.goal is None else self.goal[pixels],
         )
+
+    def crop(self, y0: int, y1: int, x0: int, x1: int) -> ViewSamples:
+        """The pixels of rows y0..y1-1 and columns x0..x1-1 of the view's image."""
+        w = self.size[1]
+        rows = torch.arange(y0, y1, device=self.offsets.device)[:, None] * w
+        cols = torch.arange(x0, x1, device=self.offsets.device)[None, :]
+        return self.subset((rows + cols).reshape(-1), (y1 - y0, x1 - x0))
 
 
 @torch.no_grad()
@@ -126,14 +138,47 @@ def sample_view(
     )
 
 
-def render_modification(view: ViewSamples, texture, start: int, stop: int) -> torch.Tensor:
-    """I_m of pixels start..stop-1 [stop - start, 3] = per pixel sum of w_s F_dT(x_s)."""
-    s0, s1 = int(view.offsets[start]), int(view.offsets[stop])
-    out = view.template_rgb.new_zeros(stop - start, 3)
-    if s1 == s0:
+class _ChunkedModification(torch.autograd.Function):
+    """I_m of a whole view with the memory of `chunk` samples, in both directions: the forward
+    pass queries F_dT chunk by chunk without a graph; the backward pass re-queries each chunk
+    with a graph and back-propagates d loss / d m'(x_s) = w_s * d loss / d I_m(pixel of s) into
+    F_dT's parameters (a chunked recomputation, as in gradient checkpointing). `anchor` is one
+    of F_dT's parameters: it only makes autograd call `backward` (its gradient here is zero)."""
+
+    @staticmethod
+    def forward(ctx, anchor, view, texture, chunk):
+        ctx.view, ctx.texture, ctx.chunk = view, texture, chunk
+        out = view.template_rgb.new_zeros(view.n_pixels, 3)
+        for s0 in range(0, view.points.shape[0], chunk):
+            s1 = s0 + chunk
+            m = texture(view.points[s0:s1]) * view.weights[s0:s1, None]
+            out.index_add_(0, view.pixel[s0:s1], m)
         return out
-    m = texture(view.points[s0:s1]) * view.weights[s0:s1, None]  # [s, 3]
-    return out.index_add(0, view.pixel[s0:s1] - start, m)
+
+    @staticmethod
+    def backward(ctx, grad):  # [P, 3]
+        view, texture, chunk = ctx.view, ctx.texture, ctx.chunk
+        with torch.enable_grad():
+            for s0 in range(0, view.points.shape[0], chunk):
+                s1 = s0 + chunk
+                m = texture(view.points[s0:s1])
+                torch.autograd.backward(m, grad[view.pixel[s0:s1]] * view.weights[s0:s1, None])
+        anchor_grad = texture.mlp[-1].bias.new_zeros(texture.mlp[-1].bias.shape)
+        return anchor_grad, None, None, None
+
+
+def render_modification(view: ViewSamples, texture, chunk: int | None = 32768) -> torch.Tensor:
+    """I_m of every pixel of the view [P, 3] = per pixel sum of w_s F_dT(x_s).
+
+    With `chunk`, at most that many samples are queried at once, with or without a graph
+    (`_ChunkedModification`); None: one plain autograd graph over every sample (the reference)."""
+    if chunk is not None:
+        return _ChunkedModification.apply(texture.mlp[-1].bias, view, texture, chunk)
+    out = view.template_rgb.new_zeros(view.n_pixels, 3)
+    if view.points.shape[0] == 0:
+        return out
+    m = texture(view.points) * view.weights[:, None]  # [S, 3]
+    return out.index_add(0, view.pixel, m)
 
 
 def jittered_camera(camera, degrees: float, rng: np.random.Generator):

@@ -12,7 +12,8 @@ import pytest
 import torch
 
 from edit.compositor import EPS, Compositor, composite_hwc
-from edit.deferred import DeferredImage, deferred_backward, direct_backward
+from edit.deferred import assemble, deferred_backward, direct_backward, image_tiles, ray_chunks
+from edit.texture_edit import edited_image
 from edit.texture_field import TextureField, cosine_window
 from edit.texture_views import (
     ViewSamples,
@@ -110,39 +111,37 @@ def _grads(*modules) -> list[torch.Tensor]:
 
 
 def test_deferred_gradients_equal_direct_backpropagation():
-    """Two images, a compositor and an image-space loss mixing all pixels: the parameter
-    gradients of deferred back-propagation (chunks of 7 rays) equal direct back-propagation."""
+    """Two images through F_dT and the compositor, an image-space loss mixing all pixels: the
+    parameter gradients of deferred back-propagation in tiles of 4 px (halo 8, F_dT on 5
+    samples at a time) equal those of direct back-propagation through the whole images at once."""
     torch.manual_seed(0)
     texture, comp = TextureField(SMALL_GRID), Compositor()
     with torch.no_grad():  # leave the zero start so every parameter gets a gradient
         texture.mlp[-1].weight.normal_(0, 0.5)
         comp.head.weight.normal_(0, 0.5)
-    views = [_random_view(6, 5, 1), _random_view(4, 7, 2)]
-    goal = [torch.rand(v.n_pixels, 3) for v in views]
+    views = [_random_view(14, 11, 1), _random_view(9, 16, 2)]
+    goal = [torch.rand(*v.size, 3) for v in views]
 
     def loss_fn(leaves):
         total = 0
-        for view, leaf, g in zip(views, leaves, goal, strict=True):
-            h, w = view.size
-            image = composite_hwc(
-                comp, view.template_rgb.reshape(h, w, 3), leaf["mod"].reshape(h, w, 3)
-            )
-            flat = image.reshape(-1, 3)
-            total = total + ((flat - g) ** 2).mean() + flat.mean(0).pow(2).sum()  # global term
+        for leaf, g in zip(leaves, goal, strict=True):
+            image = leaf["rgb"]  # [h, w, 3]
+            total = total + ((image - g) ** 2).mean() + image.mean((0, 1)).pow(2).sum()
         return total, None
 
-    def images():
-        return [
-            DeferredImage(
-                lambda a, b, v=v: {"mod": render_modification(v, texture, a, b)}, v.n_pixels
-            )
-            for v in views
-        ]
-
-    loss_direct, _ = direct_backward(images(), loss_fn)
+    # the reference: I_m of every pixel at once, one compositor pass per image, one backward
+    images = []
+    for view in views:
+        h, w = view.size
+        mod = render_modification(view, texture, None).reshape(h, w, 3)  # one plain graph
+        images.append({"rgb": composite_hwc(comp, view.template_rgb.reshape(h, w, 3), mod)})
+    loss_direct, _ = loss_fn(images)
+    loss_direct.backward()
     direct = _grads(texture, comp)
     texture.zero_grad(), comp.zero_grad()
-    loss_deferred, _ = deferred_backward(images(), loss_fn, chunk=7)
+    tiled = [edited_image(v, texture, comp, tile=4, chunk=5) for v in views]
+    assert len(tiled[0].pieces) == 4 * 3
+    loss_deferred, _ = deferred_backward(tiled, loss_fn)
     deferred = _grads(texture, comp)
     assert torch.allclose(loss_direct, loss_deferred)
     assert len(direct) == len(deferred) == 5 + 10  # table, 2 linear layers; 5 convs
@@ -152,7 +151,7 @@ def test_deferred_gradients_equal_direct_backpropagation():
 
 
 def test_deferred_gradients_through_volume_rendering():
-    """The generic form: `render(start, stop)` renders rays through a field with the renderer."""
+    """Chunks of rays: `render(start, stop)` renders rays through a field with the renderer."""
     torch.manual_seed(0)
     field = TemplateField(TemplateFieldConfig(grid=SMALL_GRID, density_activation="softplus"))
     cam = Camera(6, 5, 6.0, 6.0, 3.0, 2.5, look_at(np.array([0.0, -2.5, 0.3]), np.zeros(3)))
@@ -166,9 +165,25 @@ def test_deferred_gradients_through_volume_rendering():
         img = leaves[0]["rgb"]
         return (img.std(0) ** 2).sum() + (img[:-1] * img[1:]).mean(), None
 
-    direct_backward([DeferredImage(render, 30)], loss_fn)
+    direct_backward([ray_chunks(render, 30, 30)], loss_fn)
     direct = _grads(field)
     field.zero_grad()
-    deferred_backward([DeferredImage(render, 30)], loss_fn, chunk=4)
+    deferred_backward([ray_chunks(render, 30, 4)], loss_fn)
     for a, b in zip(direct, _grads(field), strict=True):
         assert torch.allclose(a, b, rtol=1e-4, atol=1e-7), (a - b).abs().max()
+
+
+def test_image_tiles_cover_the_image_once_with_even_halo_boxes():
+    calls = []
+
+    def render(y0, y1, x0, x1):
+        calls.append((y0, y1, x0, x1))
+        ys, xs = torch.meshgrid(torch.arange(y0, y1), torch.arange(x0, x1), indexing="ij")
+        return {"yx": torch.stack([ys, xs], -1).float()}
+
+    image = image_tiles(render, 10, 7, tile=4, halo=2)
+    full = assemble(image)["yx"]
+    ys, xs = torch.meshgrid(torch.arange(10), torch.arange(7), indexing="ij")
+    assert torch.equal(full, torch.stack([ys, xs], -1).float())
+    assert calls[0] == (0, 6, 0, 6) and calls[3] == (2, 10, 2, 7)  # grown by 2, clipped
+    assert all(c[0] % 2 == 0 and c[2] % 2 == 0 for c in calls)

@@ -1,0 +1,372 @@
+"""Texture editing against ground truth: ours, the naive baseline and --no-compositor, per object.
+
+    python bench/bench_edit_texture.py --out bench/out/edit_texture [--quick]
+        [--objects toycar figurine spot] [--methods ours naive no_compositor] [--no-features]
+    python bench/bench_edit_texture.py --out DIR --memory RUN [--sizes 256 512]
+
+For each object: a synthetic turntable with a ground-truth retexture (`sine synth --edit texture`:
+one part's hue rotated by 120 degrees), `sine recon` (known poses), `sine fit` (defaults) and, unless
+--no-features, `sine features` (semantic masks; else the painted region lifted onto the proxy).
+Every method edits from ONE view (aligned case): the target is the ground-truth edited image of
+the training view where the edit changes the most pixels, the region the part's ground-truth
+label in that view. Scored on held-out edited views (every 4th view around the ring, the edited
+view excluded: the far side of the ring sees parts of the part that the target view does not)
+against the ground truth:
+- heldout_psnr: object pixels (GT mask or rendered opacity > 0.5); heldout_psnr_edited: the pixels
+  the GT edit changed; heldout_ssim (whole image);
+- unedited_psnr: the edit vs the template's own rendering where the GT edit did not change the
+  view (on the object): does the rest stay intact?
+Writes DIR/results.json ({"cases": [...]}) and DIR/<object>_sheet.png (rows: held-out views;
+columns: template | each method | ground truth). `--quick`: toycar only, ours + naive, fewer steps.
+
+`--memory RUN`: peak memory of one texture step (one L_tex view at each of --sizes px, DINO at 224,
+compositor, L_reg) with deferred back-propagation (tiles of 128 px, F_dT on at most 32768
+samples at a time) and, for contrast, direct back-propagation, each in a fresh subprocess: a thread samples the process's resident memory (/proc/self/statm) every
+millisecond; reported is the peak during the second step minus the resident memory just before it
+(the first step warms up), and the absolute peak. Writes DIR/memory.json.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+MESHES = {
+    "spot": Path(__file__).resolve().parents[2] / "shared/data/meshes/spot/spot_triangulated.obj"
+}
+VARIANTS = {"ours": {}, "naive": {"method": "naive"}, "no_compositor": {"compositor": False}}
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
+    return 10.0 * np.log10(1.0 / max(mse, 1e-12))
+
+
+def prepare_object(name, work: Path, size, views, fit_iterations, features: bool):
+    from edit.feature_field_fit import FeaturesConfig, distill_features
+    from recon.fit import FitConfig, fit_template
+    from recon.ingest import IngestConfig
+    from recon.pipeline import ReconConfig, run_recon
+    from recon.rundir import RunDir
+    from recon.synth import SynthConfig, synthesize
+
+    syn, run = work / "synth", RunDir(work / "run")
+    if not (syn / "edits" / "texture" / "edit.json").is_file():
+        source = {"mesh": MESHES[name]} if name in MESHES else {"procedural": name}
+        synthesize(
+            SynthConfig(out=syn, views=views, width=size, height=size, edit=["texture"], **source),
+            progress=False,
+        )
+    if not run.proxy_mesh.is_file():
+        run_recon(syn, run, ReconConfig(), IngestConfig(width=size))
+    fit_cfg = FitConfig(previews=0)
+    if fit_iterations is not None:
+        fit_cfg.iterations = fit_iterations
+    fit = fit_template(run.root, fit_cfg, progress=False)
+    if features:
+        distill_features(run.root, FeaturesConfig(previews=0), progress=False)
+    return syn, run, fit
+
+
+def changed_pixels(syn: Path, name: str) -> np.ndarray:
+    """[H, W] bool: pixels the GT texture edit changed in view `name`."""
+    from render.io import read_image
+
+    orig = read_image(syn / "images" / name)
+    edited = read_image(syn / "edits" / "texture" / "images" / name)
+    return np.abs(orig - edited).max(axis=-1) > 0.02
+
+
+def pick_edit_view(run, syn: Path) -> int:
+    """The training view where the GT edit changes the most pixels."""
+    counts = [
+        (int(changed_pixels(syn, cam.name).sum()), k)
+        for k, cam in enumerate(run.load_cameras().frames)
+        if cam.split == "train"
+    ]
+    return max(counts)[1]
+
+
+def painted_region(syn: Path, cam, out: Path) -> Path:
+    """The edited part's GT labels in the view, as a white-on-black PNG (the user's painting)."""
+    from render.io import read_json, read_label_map, write_mask
+
+    part = read_json(syn / "edits" / "texture" / "edit.json")["part"]
+    region = read_label_map(syn / "labels" / Path(cam.name).with_suffix(".png").name) == part
+    write_mask(out, region)
+    return out
+
+
+def score(run, syn: Path, scene, template, views: list[int]) -> tuple[dict, list]:
+    from skimage.metrics import structural_similarity
+
+    from render.io import read_image, read_mask
+
+    frames = run.load_cameras().frames
+    rows, per = [], {"psnr": [], "edited": [], "ssim": [], "unedited": []}
+    for k in views:
+        cam = frames[k]
+        gt = read_image(syn / "edits" / "texture" / "images" / cam.name)
+        gt_mask = read_mask(syn / "edits" / "texture" / "masks" / cam.name)
+        changed = changed_pixels(syn, cam.name)
+        out = scene.render_view(cam)
+        tmpl = np.clip(template.render_view(cam)["rgb"], 0, 1)
+        pred = np.clip(out["rgb"], 0, 1)
+        obj = gt_mask | (out["opacity"] > 0.5)
+        per["psnr"].append(psnr(pred[obj], gt[obj]))
+        per["ssim"].append(float(structural_similarity(gt, pred, channel_axis=2, data_range=1.0)))
+        if changed.any():
+            per["edited"].append(psnr(pred[changed], gt[changed]))
+        unchanged = gt_mask & ~changed
+        if unchanged.any():
+            per["unedited"].append(psnr(pred[unchanged], tmpl[unchanged]))
+        rows.append((tmpl, pred, gt))
+    mean = lambda xs: float(np.mean(xs)) if xs else None  # noqa: E731
+    metrics = {
+        "heldout_psnr": mean(per["psnr"]),
+        "heldout_psnr_edited": mean(per["edited"]),
+        "heldout_ssim": mean(per["ssim"]),
+        "unedited_psnr": mean(per["unedited"]),
+        "heldout_views": len(views),
+    }
+    return metrics, rows
+
+
+# ---- peak memory of one step ----------------------------------------------------------------
+def _rss_bytes() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def memory_child(run_dir: str, size: int, mode: str) -> dict:
+    """One L_tex view at `size` px: two steps, the second measured (see the module doc)."""
+    import threading
+
+    import torch
+
+    from edit.compositor import Compositor
+    from edit.deferred import deferred_backward, direct_backward
+    from edit.dino import load_dino
+    from edit.texture_edit import edited_image
+    from edit.texture_field import TextureField
+    from edit.texture_loss import TextureLoss
+    from edit.texture_views import sample_view, scaled_camera
+    from recon.fit import load_fitted, make_sampler
+    from recon.rundir import RunDir
+    from render.template_field import freeze
+
+    torch.set_num_threads(max(1, int(os.environ.get("THREADS", "1"))))
+    run = RunDir(run_dir)
+    template, background, fit_cfg = load_fitted(run.root)
+    freeze(template)
+    camera = scaled_camera(run.load_cameras().frames[0], size)
+    view = sample_view(camera, template, make_sampler(fit_cfg, run), background)
+    h, w = view.size
+    texture, comp = TextureField(template.grid.cfg), Compositor()
+    with torch.no_grad():
+        texture.mlp[-1].weight.normal_(0, 0.1)
+    dino = load_dino(torch.device("cpu"))
+    dino.requires_grad_(False)
+    image = view.template_rgb.reshape(h, w, 3).permute(2, 0, 1)[None]
+    loss = TextureLoss(dino, image[0], 1.0, 1.0)
+    sim = loss.template_similarity(image)
+    editable = view.opacity > 0.5
+
+    def loss_fn(leaves):
+        out = leaves[0]["rgb"]
+        tex = loss.terms(out.permute(2, 0, 1)[None], template_sim=sim)
+        reg = ((out.reshape(-1, 3) - view.template_rgb)[~editable] ** 2).sum(-1).mean()
+        return tex["cls"] + tex["structure"] + reg, None
+
+    def step():
+        if mode == "deferred":  # tiles of 128 px, F_dT on 32768 samples at a time
+            images = [edited_image(view, texture, comp, 128, 32768)]
+        else:  # the whole image in one piece, one graph over every sample
+            images = [edited_image(view, texture, comp, max(h, w), None)]
+        if mode == "deferred":
+            deferred_backward(images, loss_fn)
+        else:
+            direct_backward(images, loss_fn)
+
+    step()  # warm-up
+    texture.zero_grad(), comp.zero_grad()
+    peak, stop = [0], threading.Event()
+
+    def watch():
+        while not stop.is_set():
+            peak[0] = max(peak[0], _rss_bytes())
+            time.sleep(0.001)
+
+    before = _rss_bytes()
+    thread = threading.Thread(target=watch, daemon=True)
+    thread.start()
+    t0 = time.perf_counter()
+    step()
+    seconds = time.perf_counter() - t0
+    stop.set()
+    thread.join()
+    peak[0] = max(peak[0], _rss_bytes())
+    return {
+        "size": size,
+        "mode": mode,
+        "pixels": view.n_pixels,
+        "samples": int(view.points.shape[0]),
+        "step_peak_mib": (peak[0] - before) / 2**20,
+        "process_peak_mib": peak[0] / 2**20,
+        "seconds": seconds,
+    }
+
+
+def memory_bench(run_dir: Path, sizes: list[int], out: Path) -> list[dict]:
+    from render.io import write_json
+
+    rows = []
+    for size in sizes:
+        for mode in ("deferred", "direct"):
+            root = str(Path(__file__).resolve().parents[1])
+            code = (
+                f"import json, sys; sys.path.insert(0, {root!r}); "
+                "from bench.bench_edit_texture import memory_child; "
+                f"print(json.dumps(memory_child({str(run_dir)!r}, {size}, {mode!r})))"
+            )
+            res = subprocess.run(
+                [sys.executable, "-c", code], capture_output=True, text=True, check=True
+            )
+            rows.append(json.loads(res.stdout.strip().splitlines()[-1]))
+            print(json.dumps(rows[-1]), flush=True)
+    write_json(out / "memory.json", rows)
+    print(
+        f"\n{'size':>5s} {'mode':9s} {'pixels':>7s} {'samples':>8s} {'step MiB':>9s} {'peak MiB':>9s} {'s':>6s}"
+    )
+    for r in rows:
+        print(
+            f"{r['size']:5d} {r['mode']:9s} {r['pixels']:7d} {r['samples']:8d} "
+            f"{r['step_peak_mib']:9.1f} {r['process_peak_mib']:9.1f} {r['seconds']:6.2f}"
+        )
+    return rows
+
+
+# ---- the benchmark --------------------------------------------------------------------------
+def main() -> int:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--out", type=Path, required=True, help="work and results folder")
+    ap.add_argument("--quick", action="store_true", help="toycar only, ours + naive, fewer steps")
+    ap.add_argument("--objects", nargs="+", default=["toycar", "figurine", "spot"])
+    ap.add_argument("--methods", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    ap.add_argument("--size", type=int, default=256, help="image size (square)")
+    ap.add_argument("--views", type=int, default=36, help="views on the ring")
+    ap.add_argument("--iterations", type=int, default=None, help="edit steps (default: the edit's)")
+    ap.add_argument(
+        "--fit-iterations", type=int, default=None, help="template steps (default: fit's)"
+    )
+    ap.add_argument(
+        "--no-features",
+        action="store_true",
+        help="skip `sine features`: masks from the region lifted onto the proxy",
+    )
+    ap.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
+    ap.add_argument("--memory", type=Path, help="measure one step's peak memory on this RUN")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512], help="--memory sizes")
+    args = ap.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    if args.memory is not None:
+        memory_bench(args.memory, args.sizes, args.out)
+        return 0
+    if args.quick:
+        args.objects, args.methods = ["toycar"], ["ours", "naive"]
+        args.iterations = args.iterations or 300
+
+    import dataclasses
+
+    from edit.scene import load_scene
+    from edit.texture_edit import TextureEditConfig, run_texture_edit
+    from render.io import write_image, write_json
+
+    cases = []
+    for obj in args.objects:
+        t0 = time.perf_counter()
+        work = args.out / obj
+        syn, run, fit = prepare_object(
+            obj, work, args.size, args.views, args.fit_iterations, not args.no_features
+        )
+        print(
+            f"[{obj}] template: held-out PSNR {fit.get('heldout_psnr', float('nan')):.2f} dB, "
+            f"prepared in {time.perf_counter() - t0:.0f} s",
+            flush=True,
+        )
+        k = pick_edit_view(run, syn)
+        n = len(run.load_cameras().frames)
+        views = [v for v in range(0, n, 4) if v != k]
+        template = load_scene(run.root)
+        cam = run.load_cameras().frames[k]
+        target = syn / "edits" / "texture" / "images" / cam.name
+        region = painted_region(syn, cam, work / "region.png")
+        sheets = None
+        for method in args.methods:
+            cfg = dataclasses.replace(
+                TextureEditConfig(previews=0, threads=args.threads), **VARIANTS[method]
+            )
+            if args.iterations:
+                cfg.iterations = args.iterations
+            t1 = time.perf_counter()
+            m = run_texture_edit(run.root, k, target, method, cfg, region=region, progress=False)
+            seconds = m.get("total_seconds", time.perf_counter() - t1)
+            scene = load_scene(run.root, edit=method)
+            metrics, rows = score(run, syn, scene, template, views)
+            case = {
+                "object": obj,
+                "method": method,
+                **metrics,
+                "seconds": float(seconds),
+                "edit_view": k,
+                "edited_view_psnr_region": m.get("edited_view_psnr_region"),
+                "mask_source": m.get("mask_source"),
+                "iterations": m.get("iterations"),
+            }
+            cases.append(case)
+            print(json.dumps(case), flush=True)
+            sheets = [[r[0]] for r in rows] if sheets is None else sheets
+            for row, r in zip(sheets, rows, strict=True):
+                row.append(r[1])
+        if sheets:
+            picked = np.linspace(0, len(rows) - 1, min(4, len(rows))).astype(int)
+            grid = np.concatenate(
+                [np.concatenate(sheets[i] + [rows[i][2]], axis=1) for i in picked], axis=0
+            )
+            write_image(args.out / f"{obj}_sheet.png", grid)
+        write_json(
+            args.out / "results.json",
+            {"cases": cases, "columns": ["template", *args.methods, "ground truth"]},
+        )
+
+    print()
+    print(
+        f"{'object':10s} {'method':14s} {'PSNR obj':>9s} {'PSNR edit':>10s} {'SSIM':>6s} "
+        f"{'unedited':>9s} {'seconds':>8s}"
+    )
+    fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
+    for c in cases:
+        print(
+            f"{c['object']:10s} {c['method']:14s} {fmt(c['heldout_psnr']):>9s} "
+            f"{fmt(c['heldout_psnr_edited']):>10s} {c['heldout_ssim']:6.3f} "
+            f"{fmt(c['unedited_psnr']):>9s} {c['seconds']:8.0f}"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

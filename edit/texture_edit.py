@@ -1,0 +1,610 @@
+"""Texture editing from one image (`sine edit RUN --mode texture`; paper Sec. 3.3 + supplementary).
+
+Inputs: a run with a fitted template, the index K of the edited view and either the target (the
+user's repaint of view K: the aligned case) or a reference photo of another object whose look is
+wanted (`--reference`: the unaligned case), optionally the painted region of view K. Outputs in
+RUN/edits/NAME/, as for geometry edits:
+
+    target.png, region.png, template_view.png   what the edit was learnt from (working size)
+    reference.png                                the reference photo (unaligned case)
+    edit.json                                    mode, view, method and every option
+    checkpoint.pt                                resumable training state
+    edit_field.pt                                {"method": "texture", "editing": F_dG (the
+                                                 identity), F'_dG, F_dT, "compositor": the UNet
+                                                 (None with --no-compositor), "band_width"}; or
+                                                 the naive fine-tune ({"method": "naive"})
+    metrics.json, log.json, edited_view.png, previews/
+
+Ours (`--method ours`): the template and F_dG stay frozen (F_dG exactly the identity), so every
+view's template image I_o and sample weights are constants (`edit.texture_views`); F_dT (hash
+grid with a coarse-to-fine window over its levels, fully open at `coarse_to_fine` of training)
+renders the modification image I_m with those weights, and the compositor (`edit.compositor`)
+blends I_o and I_m into the edited image I. Each step, with deferred back-propagation
+(`edit.deferred`: full images rendered without a graph, the image losses' gradient cached, then
+F_dT re-rendered chunk by chunk with a graph):
+
+- aligned case, a crop of view K (`patch_size`, working resolution): photometric
+  ||I - target||^2 on the painted region's pixels, L_reg ||I - I_o||^2 on the others;
+- `tex_views` views around the object (the run's training cameras, each in `jitter_copies`
+  copies turned by a random rotation of `jitter_deg`; rendered at `tex_size` px, DINO resizes
+  them to 224): L_tex = w_cls ||cls(I_t) - cls(I)|| + w_structure ||S(I_o) - S(I)||_F
+  (`edit.texture_loss`; I_t the target, or the reference photo) and L_reg on the pixels outside
+  the edited part. The edited part of a view comes from the semantic masks (K-means of the DINO
+  feature field, as `sine masks`) when RUN/features exists, else from the painted region lifted
+  onto the proxy: proxy vertices visible in view K are inside or outside the region, and a
+  pixel whose surface point is nearest to a vertex seen outside the region (or the background)
+  keeps the template; vertices hidden from view K are left free (`mask_source`).
+
+`--no-compositor` (a baseline): I = clamp(I_o + I_m), i.e. m' added to c' inside volume
+rendering (`edit.editing_field.combine`), same losses. `--method naive` (a baseline): the
+template's colour MLP fine-tuned on view K's rays (target inside the region, the template's own
+colours outside), no editing field, no L_tex.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from edit.compositor import HALO, Compositor, composite_hwc
+from edit.deferred import DeferredImage, deferred_backward, image_tiles
+from edit.edit_inputs import difference_region, read_region, read_target
+from edit.editing_field import EditingField
+from edit.geometry_losses import photometric
+from edit.texture_views import (
+    ViewSamples,
+    jittered_camera,
+    labels_to_editable,
+    render_modification,
+    sample_view,
+    scaled_camera,
+    vertex_labels,
+)
+from recon.fit import load_fitted, make_sampler, psnr
+from recon.rundir import RunDir
+from recon.training import Trainer
+from render.configs import option, to_dict, validate
+from render.device import pick_device, torch_threads
+from render.errors import SineError
+from render.io import read_image_rgba, save_torch, write_image, write_json, write_mask
+from render.renderer import render_rays
+from render.template_field import freeze
+
+METHODS = ("ours", "naive")
+
+
+@dataclass
+class TextureEditConfig:
+    """Options of a texture edit (`sine edit --mode texture`). Options named as the geometry
+    edit's share its defaults (one `sine edit` command line serves both modes)."""
+
+    method: str = option(
+        "ours", "ours (editing field + compositor) or naive (fine-tune)", choices=list(METHODS)
+    )
+    compositor: bool = option(
+        True, "blend I_o and I_m with the 2D compositor (--no-compositor: I_o + I_m, a baseline)"
+    )
+    iterations: int = option(600, "training steps", low=1)
+    lr_texture_grid: float = option(1e-2, "Adam learning rate of F_dT's hash table", low=1e-12)
+    lr_texture_mlp: float = option(1e-3, "Adam learning rate of F_dT's MLP", low=1e-12)
+    lr_compositor: float = option(1e-3, "Adam learning rate of the compositor", low=1e-12)
+    lr_naive: float = option(1e-3, "naive baseline: learning rate of the colour MLP", low=1e-12)
+    lr_final_factor: float = option(
+        0.1, "learning rates decay exponentially to this factor", low=1e-6, high=1.0
+    )
+    w_photometric: float = option(1.0, "weight of the photometric term on view K's region", low=0)
+    w_reg: float = option(1.0, "weight of the regularisation L_reg outside the edited part", low=0)
+    w_cls: float = option(0.02, "weight of L_tex's CLS term (appearance of the target)", low=0)
+    w_structure: float = option(
+        0.02, "weight of L_tex's self-similarity term (structure of the template)", low=0
+    )
+    tex_views: int = option(1, "views around the object with L_tex and L_reg per step", low=0)
+    tex_size: int = option(128, "longer side (px) of the L_tex views' renders", low=16)
+    jitter_deg: float = option(
+        5.0, "pose jitter of the L_tex views: random rotations of this spread (degrees)", low=0
+    )
+    jitter_copies: int = option(2, "jittered copies of each training camera", low=1)
+    patch_size: int = option(
+        96, "side (px) of the crop of view K per step (0: the whole view)", low=0
+    )
+    coarse_to_fine: float = option(
+        0.5, "fraction of training after which all of F_dT's hash levels are on", low=0, high=1
+    )
+    min_weight: float = option(
+        1e-3, "samples of lower volume-rendering weight are skipped by F_dT", low=0, high=1
+    )
+    mask_source: str = option(
+        "auto",
+        "which pixels of other views may change: semantic masks from RUN/features (features), "
+        "the painted region lifted onto the proxy (proxy), or features when present (auto)",
+        choices=["auto", "features", "proxy"],
+    )
+    region_dilate: int = option(6, "pixels the automatic editable region is grown by", low=0)
+    visibility_tol: float = option(
+        0.02, "depth tolerance (run units) of visible proxy vertices", low=0
+    )
+    batch_rays: int = option(1024, "naive baseline: rays of view K per step", low=1)
+    chunk: int = option(
+        32768, "F_dT is queried on at most this many samples at once (memory)", low=1
+    )
+    tile: int = option(
+        128,
+        "side (px, even) of the image tiles re-rendered with a graph by the deferred "
+        "back-propagation: the step's peak memory follows it, not the image size",
+        low=2,
+    )
+    checkpoint_every: int = option(100, "steps between checkpoints", low=1)
+    checkpoint_seconds: float = option(60.0, "seconds between checkpoints", low=1)
+    log_every: int = option(25, "steps between log entries", low=1)
+    previews: int = option(4, "held-out views rendered as previews at the end (0: none)", low=0)
+    seed: int = option(0, "random seed")
+    device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
+    threads: int = option(0, "torch CPU threads (0: torch's default)", low=0)
+
+
+RUNTIME_KEYS = (
+    "device",
+    "threads",
+    "previews",
+    "log_every",
+    "checkpoint_every",
+    "checkpoint_seconds",
+    "chunk",
+)
+
+
+# ---- preparation --------------------------------------------------------------------------
+@dataclass
+class TextureSetup:
+    """What a texture edit trains from (written to the edit's folder)."""
+
+    camera: object  # view K
+    view: ViewSamples  # view K at the working size, with `editable` = the region
+    target_rgb: np.ndarray | None  # [H, W, 3] (aligned case)
+    style_image: np.ndarray  # [H', W', 3] the image whose CLS L_tex aims at
+    region: np.ndarray  # [H, W] bool
+    reference: bool
+
+
+def read_reference(path, background) -> np.ndarray:
+    """A reference photo [H, W, 3]; its transparent pixels show the run's background."""
+    path = Path(path)
+    if not path.is_file():
+        raise SineError(f"reference image {path} does not exist")
+    rgb, alpha = read_image_rgba(path)
+    if alpha is not None:
+        rgb = rgb * alpha[..., None] + np.asarray(background, np.float32) * (1 - alpha[..., None])
+    return rgb.astype(np.float32)
+
+
+def pick_view(run: RunDir, view: int):
+    frames = run.load_cameras().frames
+    if not 0 <= view < len(frames):
+        raise SineError(f"--view {view} is out of range: the run has views 0..{len(frames) - 1}")
+    return frames[view]
+
+
+def prepare(run, out, view, target, region, reference, cfg, template, bg, sampler, device):
+    camera = pick_view(run, view)
+    size = (camera.width, camera.height)
+    background = bg().detach().cpu().numpy()
+    samples = sample_view(camera, template, sampler, bg, cfg.min_weight, device=device)
+    h, w = camera.height, camera.width
+    t_rgb = samples.template_rgb.reshape(h, w, 3).clamp(0, 1).cpu().numpy()
+    t_alpha = samples.opacity.reshape(h, w).cpu().numpy()
+    tgt = read_target(target, size, None, background) if target is not None else None
+    if region is not None:
+        editable = read_region(region, size)
+    elif tgt is not None:
+        editable = difference_region(tgt, t_rgb, t_alpha, cfg.region_dilate)
+    else:  # a reference without a region: the whole object may change
+        editable = t_alpha > 0.5
+    style = read_reference(reference, background) if reference is not None else tgt.rgb
+    samples.editable = torch.from_numpy(editable.reshape(-1)).to(device)
+    if tgt is not None:
+        write_image(out / "target.png", tgt.rgb)
+    if reference is not None:
+        write_image(out / "reference.png", style)
+    write_mask(out / "region.png", editable)
+    write_image(out / "template_view.png", t_rgb)
+    return TextureSetup(
+        camera,
+        samples,
+        None if tgt is None else tgt.rgb,
+        style,
+        editable,
+        reference is not None,
+    )
+
+
+class ViewBank:
+    """The L_tex views: each training camera in `copies` jittered poses at `size` px, rendered
+    through the template (with their editable mask and DINO self-similarity) on first use.
+    Poses depend only on the seed and the entry, so a resumed edit sees the same views."""
+
+    def __init__(self, cameras, copies: int, jitter: float, size: int, seed: int, make):
+        self.cameras = []
+        for j in range(len(cameras) * copies):
+            rng = np.random.default_rng([seed, j])
+            cam = jittered_camera(cameras[j % len(cameras)], jitter, rng)
+            self.cameras.append(scaled_camera(cam, size))
+        self.make = make
+        self.cache: dict[int, ViewSamples] = {}
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def __getitem__(self, j: int) -> ViewSamples:
+        if j not in self.cache:
+            self.cache[j] = self.make(self.cameras[j])
+        return self.cache[j]
+
+
+def editable_masker(run: RunDir, setup: TextureSetup, cfg, vertices, triangles, device):
+    """view -> [P] bool pixels that may change (see the module doc); and the source's name."""
+    has_features = (run.features / "field.pt").is_file()
+    if cfg.mask_source == "features" and not has_features:
+        raise SineError(
+            f"--mask-source features needs {run.features}/field.pt: run `sine features`"
+        )
+    if cfg.mask_source == "features" or (cfg.mask_source == "auto" and has_features):
+        from edit.feature_maps import FeatureMapRenderer
+        from edit.semantic_masks import SemanticMasks
+
+        renderer = FeatureMapRenderer(run.root, str(device))
+        feats, on_object = renderer(setup.camera)
+        painted = setup.region & on_object
+        if not painted.any():
+            raise SineError("the editable region does not touch the object in the editing view")
+        masks = SemanticMasks(feats, painted, object_mask=on_object)
+
+        def semantic(view: ViewSamples) -> torch.Tensor:
+            feats, on_obj = renderer(view.camera)
+            image = view.template_rgb.reshape(*view.size, 3).clamp(0, 1).cpu().numpy()
+            editable = masks.mask(feats, image, on_obj).cpu().numpy() & on_obj
+            return torch.from_numpy(editable.reshape(-1)).to(device)
+
+        return semantic, "features"
+    labels = vertex_labels(setup.camera, vertices, triangles, setup.region, cfg.visibility_tol)
+
+    def lifted(view: ViewSamples) -> torch.Tensor:
+        return labels_to_editable(view, vertices, labels)
+
+    return lifted, "proxy"
+
+
+# ---- training -----------------------------------------------------------------------------
+def run_texture_edit(
+    run_dir,
+    view: int,
+    target,
+    name: str,
+    cfg: TextureEditConfig | None = None,
+    region=None,
+    reference=None,
+    force: bool = False,
+    progress: bool = True,
+    stop_at: int | None = None,
+) -> dict:
+    """Learns a texture edit into RUN/edits/NAME; returns its metrics (resumes when re-run)."""
+    cfg = cfg or TextureEditConfig()
+    validate(cfg)
+    if target is None and reference is None:
+        raise SineError("a texture edit needs --target (view K repainted) or --reference (a photo)")
+    if cfg.method == "naive" and target is None:
+        raise SineError("--method naive needs --target (it fits view K's pixels)")
+    run = RunDir(run_dir)
+    run.require("cameras")
+    pick_view(run, view)
+    out = run.edit(name)
+    if out.exists() and not out.is_dir():
+        raise SineError(f"{out} exists and is not a folder")
+    device = pick_device(cfg.device)
+    with torch_threads(cfg.threads):
+        return _edit(
+            run, out, view, target, region, reference, cfg, device, force, progress, stop_at
+        )
+
+
+def _edit(run, out, view, target, region, reference, cfg, device, force, progress, stop_at):
+    t_start = time.perf_counter()
+    settings = {
+        "mode": "texture",
+        "view": view,
+        "target": None if target is None else str(target),
+        "region": None if region is None else str(region),
+        "reference": None if reference is None else str(reference),
+        **to_dict(cfg),
+    }
+    trainer = Trainer(
+        out,
+        f"edit {out.name}",
+        settings,
+        RUNTIME_KEYS,
+        iterations=cfg.iterations,
+        seed=cfg.seed,
+        log_every=cfg.log_every,
+        checkpoint_every=cfg.checkpoint_every,
+        checkpoint_seconds=cfg.checkpoint_seconds,
+        force=force,
+        progress=progress,
+        manual_backward=cfg.method == "ours",
+        advice="lower learning rates (--lr-texture-grid, --lr-compositor, --lr-naive)",
+    )
+    done = trainer.finished()
+    if done is not None:
+        return done
+    work = trainer.work_dir
+    work.mkdir(parents=True, exist_ok=True)
+
+    template, background, fit_cfg = load_fitted(run.root, device)
+    freeze(template)
+    sampler = make_sampler(fit_cfg, run)
+    setup = prepare(
+        run, work, view, target, region, reference, cfg, template, background, sampler, device
+    )
+    write_json(work / "edit.json", settings)
+    torch.manual_seed(cfg.seed)
+    if cfg.method == "naive":
+        field, step = _naive(cfg, trainer, template, background, sampler, setup, device)
+    else:
+        editing, compositor, step, mask_source = _ours(
+            run, cfg, trainer, template, sampler, background, setup, device
+        )
+
+    if not trainer.run(step, stop_at=stop_at):
+        return {"step": trainer.step}
+
+    # ---- save the result and score the edited view ----
+    from edit.editing_scene import scene_from_folder
+
+    if cfg.method == "naive":
+        save_torch(work / "edit_field.pt", {"method": "naive", "field": field.state_dict()})
+    else:
+        save_torch(
+            work / "edit_field.pt",
+            {
+                "method": "texture",
+                "editing": editing.state_dict(),
+                "compositor": None if compositor is None else compositor.state_dict(),
+                "band_width": float(fit_cfg.band_width),
+            },
+        )
+    scene = scene_from_folder(run, work, 1.0, device)
+    rendered = np.clip(scene.render_view(setup.camera)["rgb"], 0, 1)
+    template_rgb = setup.view.template_rgb.reshape(*setup.view.size, 3).clamp(0, 1).cpu().numpy()
+    inside = setup.region
+    metrics = {
+        "method": cfg.method,
+        "compositor": bool(cfg.compositor) if cfg.method == "ours" else None,
+        "view": view,
+        "aligned": setup.target_rgb is not None,
+        "unedited_view_psnr": psnr(rendered[~inside], template_rgb[~inside])
+        if (~inside).any()
+        else None,
+        "iterations": trainer.step,
+        "train_seconds": trainer.seconds,
+        "final_losses": {k: v for k, v in trainer.log[-1].items() if k not in ("step", "seconds")},
+        "device": str(device),
+    }
+    if cfg.method == "ours":
+        metrics["mask_source"] = mask_source
+    panels = [template_rgb, rendered]
+    if setup.target_rgb is not None:
+        metrics["edited_view_psnr"] = psnr(rendered, setup.target_rgb)
+        metrics["edited_view_psnr_region"] = psnr(rendered[inside], setup.target_rgb[inside])
+        panels.append(setup.target_rgb)
+    write_image(work / "edited_view.png", np.concatenate(panels, axis=1))
+    metrics.update(write_previews(run, scene, work / "previews", cfg.previews, setup, device))
+    metrics["total_seconds"] = time.perf_counter() - t_start
+    write_json(work / "metrics.json", metrics)
+    trainer.publish()
+    return metrics
+
+
+def _naive(cfg, trainer, template, background, sampler, setup: TextureSetup, device):
+    """The baseline: the template's colour MLP fine-tuned on view K's rays."""
+    field = copy.deepcopy(template)
+    for p in field.color_net.parameters():
+        p.requires_grad_(True)
+    groups = [{"params": list(field.color_net.parameters()), "lr": cfg.lr_naive, "name": "color"}]
+    trainer.start({"field": field}, groups, lr_final_factor=cfg.lr_final_factor)
+    o, d = (torch.from_numpy(a).to(device) for a in setup.camera.rays())
+    hits = sampler.cast(o, d)
+    pool = torch.nonzero(hits.hit)[:, 0]
+    region = setup.view.editable
+    goal = torch.where(
+        region[:, None],
+        torch.from_numpy(setup.target_rgb.reshape(-1, 3)).to(device),
+        setup.view.template_rgb,
+    )
+
+    def step(i: int) -> dict[str, torch.Tensor]:
+        idx = pool[torch.randint(len(pool), (cfg.batch_rays,), generator=trainer.generator)]
+        res = render_rays(
+            field,
+            o[idx],
+            d[idx],
+            sampler,
+            background,
+            hits=hits[idx],
+            perturb=True,
+            generator=trainer.generator,
+        )
+        inside = region[idx]
+        zero = 0 * res["rgb"].sum()
+        return {
+            "photometric": cfg.w_photometric * photometric(res["rgb"][inside], goal[idx][inside])
+            if inside.any()
+            else zero,
+            "reg": cfg.w_reg * photometric(res["rgb"][~inside], goal[idx][~inside])
+            if (~inside).any()
+            else zero,
+        }
+
+    return field, step
+
+
+def _ours(run, cfg, trainer, template, sampler, background, setup: TextureSetup, device):
+    """F_dT + compositor with deferred back-propagation (see the module doc)."""
+    from edit.dino import load_dino
+    from edit.texture_loss import TextureLoss
+
+    editing = EditingField(template.grid.cfg).to(device)
+    for deform in (editing.deform, editing.forward_deform):  # exactly the identity, frozen
+        nn.init.zeros_(deform.mlp[-1].weight)
+        nn.init.zeros_(deform.mlp[-1].bias)
+        freeze(deform)
+    texture = editing.texture
+    compositor = Compositor().to(device) if cfg.compositor else None
+    groups = [
+        {"params": [texture.grid.table], "lr": cfg.lr_texture_grid, "eps": 1e-15, "name": "grid"},
+        {"params": list(texture.mlp.parameters()), "lr": cfg.lr_texture_mlp, "name": "mlp"},
+    ]
+    state = {"editing": editing}
+    if compositor is not None:
+        groups.append(
+            {"params": list(compositor.parameters()), "lr": cfg.lr_compositor, "name": "compositor"}
+        )
+        state["compositor"] = compositor
+    trainer.start(state, groups, lr_final_factor=cfg.lr_final_factor)
+    gen = trainer.generator
+
+    use_tex = cfg.tex_views > 0 and (cfg.w_cls > 0 or cfg.w_structure > 0)
+    tex_loss = None
+    if use_tex:
+        dino = load_dino(device)
+        dino.requires_grad_(False)
+        style = torch.from_numpy(setup.style_image).permute(2, 0, 1).to(device)
+        tex_loss = TextureLoss(dino, style, cfg.w_cls, cfg.w_structure)
+    vertices, triangles = sampler.raycaster.vertices, sampler.raycaster.triangles
+    masker, mask_source = (None, "none")
+    if use_tex:
+        masker, mask_source = editable_masker(run, setup, cfg, vertices, triangles, device)
+
+    def make_view(camera) -> ViewSamples:
+        view = sample_view(camera, template, sampler, background, cfg.min_weight, device=device)
+        view.editable = masker(view)
+        image = view.template_rgb.reshape(*view.size, 3).clamp(0, 1).permute(2, 0, 1)[None]
+        view.template_sim = tex_loss.template_similarity(image)
+        return view
+
+    train = [c for c in run.load_cameras().frames if c.split == "train"] or list(
+        run.load_cameras().frames
+    )
+    bank = ViewBank(train, cfg.jitter_copies, cfg.jitter_deg, cfg.tex_size, cfg.seed, make_view)
+
+    k_view = setup.view
+    h_k, w_k = k_view.size
+    target = None
+    if setup.target_rgb is not None:  # kept with the view, so crops carry it along
+        target = torch.from_numpy(setup.target_rgb.reshape(-1, 3)).to(device)
+        k_view.goal = target
+    region_px = torch.nonzero(k_view.editable)[:, 0].cpu()
+    object_px = torch.nonzero(k_view.opacity > 0.5)[:, 0].cpu()
+    if len(object_px) == 0:
+        object_px = torch.arange(k_view.n_pixels)
+
+    def crop() -> ViewSamples:
+        """A crop of view K centred on a region pixel or an object pixel (even odds)."""
+        ph = h_k if cfg.patch_size == 0 else min(cfg.patch_size, h_k)
+        pw = w_k if cfg.patch_size == 0 else min(cfg.patch_size, w_k)
+        pool = region_px if torch.rand(1, generator=gen).item() < 0.5 else object_px
+        c = int(pool[torch.randint(len(pool), (1,), generator=gen)])
+        y0 = min(max(c // w_k - ph // 2, 0), h_k - ph)
+        x0 = min(max(c % w_k - pw // 2, 0), w_k - pw)
+        return k_view.crop(y0, y0 + ph, x0, x0 + pw)
+
+    def kept(pred, goal, mask):
+        return photometric(pred[mask], goal[mask]) if mask.any() else 0 * pred.sum()
+
+    tile = cfg.tile + cfg.tile % 2
+
+    def step(i: int) -> dict[str, torch.Tensor]:
+        texture.set_progress(i / max(1.0, cfg.coarse_to_fine * cfg.iterations))
+        views, kinds = [], []
+        if target is not None:
+            views.append(crop())
+            kinds.append("edit")
+        for _ in range(cfg.tex_views if use_tex else 0):
+            views.append(bank[int(torch.randint(len(bank), (1,), generator=gen))])
+            kinds.append("tex")
+
+        def loss_fn(leaves):
+            terms: dict[str, torch.Tensor] = {}
+
+            def add(name, value):
+                terms[name] = terms.get(name, 0) + value
+
+            for view, kind, leaf in zip(views, kinds, leaves, strict=True):
+                image = leaf["rgb"].reshape(-1, 3)  # I [h * w, 3]
+                add("reg", cfg.w_reg * kept(image, view.template_rgb, ~view.editable))
+                if kind == "edit":
+                    add("photometric", cfg.w_photometric * kept(image, view.goal, view.editable))
+                else:
+                    chw = leaf["rgb"].permute(2, 0, 1)[None]
+                    tex = tex_loss.terms(chw, template_sim=view.template_sim)
+                    add("cls", cfg.w_cls * tex["cls"])
+                    add("structure", cfg.w_structure * tex["structure"])
+            return sum(terms.values()), terms
+
+        images = [edited_image(v, texture, compositor, tile, cfg.chunk) for v in views]
+        _, terms = deferred_backward(images, loss_fn)
+        return {k: v.detach() for k, v in terms.items()}
+
+    return editing, compositor, step, mask_source
+
+
+def edited_image(
+    view: ViewSamples, texture, compositor, tile: int, chunk: int | None = 32768
+) -> DeferredImage:
+    """The edited image I of a view ({"rgb": [h, w, 3]}) in tiles for `deferred_backward`:
+    each tile's I_m from F_dT on the kept samples (`chunk` samples at a time), then the
+    compositor (with a halo of HALO px)."""
+
+    def render(y0, y1, x0, x1):
+        part = view.crop(y0, y1, x0, x1)
+        size = (y1 - y0, x1 - x0, 3)
+        mod = render_modification(part, texture, chunk).reshape(size)
+        return {"rgb": composite_hwc(compositor, part.template_rgb.reshape(size), mod)}
+
+    h, w = view.size
+    return image_tiles(render, h, w, tile, HALO if compositor is not None else 0)
+
+
+# ---- results ------------------------------------------------------------------------------
+def write_previews(run: RunDir, scene, folder: Path, n: int, setup: TextureSetup, device) -> dict:
+    """Template | edit for n views around the ring; returns the mean DINO CLS distance of both
+    to the style image (target or reference) over those views: did the look move towards it?"""
+    if n <= 0:
+        return {}
+    from edit.dino import load_dino
+    from edit.scene import load_scene
+
+    template = load_scene(run.root, None, device=str(device))
+    dino = load_dino(device)
+
+    def cls(image: np.ndarray) -> torch.Tensor:
+        with torch.no_grad():
+            return dino.cls(torch.from_numpy(image).permute(2, 0, 1)[None].to(device))[0]
+
+    style = cls(setup.style_image)
+    before, after = [], []
+    frames = run.load_cameras().frames
+    for k in np.linspace(0, len(frames), n, endpoint=False).astype(int):
+        cam = frames[k]
+        a = np.clip(template.render_view(cam)["rgb"], 0, 1)
+        b = np.clip(scene.render_view(cam)["rgb"], 0, 1)
+        write_image(folder / f"{Path(cam.name).stem}.png", np.concatenate([a, b], axis=1))
+        before.append(float(torch.linalg.vector_norm(cls(a) - style)))
+        after.append(float(torch.linalg.vector_norm(cls(b) - style)))
+    return {
+        "preview_cls_distance_before": float(np.mean(before)),
+        "preview_cls_distance_after": float(np.mean(after)),
+    }
