@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from recon.rundir import RunDir
+from recon.selfcheck import require_trusted_poses
 from recon.training import RUNTIME_KEYS, LoopOptions, Trainer, loop_options
 from render.configs import from_json, option, to_dict, to_json, validate
 from render.device import pick_device, torch_threads
@@ -283,6 +284,7 @@ def fit_template(
     cfg = validate(cfg or FitConfig())
     run = RunDir(run_dir)
     run.require("cameras")
+    require_trusted_poses(run)
     if not run.proxy_mesh.is_file() and cfg.sampler == "band":
         raise SineError(f"{run.root} has no proxy_mesh.ply yet; run `sine recon {run.root}` first")
     device = pick_device(cfg.device)

@@ -99,6 +99,18 @@ class ReconConfig:
         "points with large reprojection error or small triangulation angle",
     )
     seed: int = option(0, "poses: random seed of SfM", low=0)
+    min_silhouette_iou: float = option(
+        0.8,
+        "poses: self-check: least mean IoU of the masks with the silhouettes of the visual hull "
+        "(after poses) and of the proxy mesh (report); below it the run stops",
+        low=0.0,
+        high=1.0,
+    )
+    max_reprojection_px: float = option(
+        2.0,
+        "poses: self-check: largest mean SfM reprojection error (pixels at the SfM image size)",
+        low=0.0,
+    )
     target_radius: float = option(
         0.85, "normalize: radius of the object's bounding sphere in run units", low=0.01
     )
@@ -133,6 +145,11 @@ class ReconConfig:
     )
     target_triangles: int = option(40_000, "proxy: quadric decimation target triangle count", low=4)
     contact_sheet_columns: int = option(6, "report: thumbnails per row in the contact sheet", low=1)
+    accept_poor_poses: bool = option(
+        False,
+        "report: go on when a self-check finds the poses poor (the verdict in recon_report.json "
+        "stays 'poor'; by default the run stops there)",
+    )
 
 
 def stage_options(cfg: ReconConfig, stage: str, ignore_poses: bool = False) -> dict:
@@ -229,16 +246,28 @@ class Pipeline:
             "masks_given": len(names) - len(out["auto"]),
         }
 
-    def stage_poses(self) -> dict:
-        from recon.poses import (
-            SfmParams,
-            depth_scale_to_sfm,
-            prepare_sfm_images,
-            rescale_depth,
-            run_sfm,
-            undistort_in_place,
+    def thresholds(self):
+        from recon.selfcheck import CheckThresholds
+
+        return CheckThresholds(
+            min_silhouette_iou=self.cfg.min_silhouette_iou,
+            max_reprojection_px=self.cfg.max_reprojection_px,
         )
 
+    def check_poses(self, cams, reprojection_px=None) -> dict:
+        """The self-check of poses (recon.selfcheck) as a dict for the stage info."""
+        from recon.selfcheck import check_poses, looks_like_turntable
+
+        masks = self.masks_for(cams)
+        ordered = "ordered" if looks_like_turntable(masks) else False
+        verdict = check_poses(cams, masks, self.thresholds(), reprojection_px, turntable=ordered)
+        print(
+            f"[recon] poses: self-check {verdict.verdict} (hull silhouette IoU mean "
+            f"{verdict.numbers['hull_iou_mean']:.3f})"
+        )
+        return verdict.to_dict()
+
+    def stage_poses(self) -> dict:
         captures = self.run.load_captures()
         views = self.views()
         if captures.get("poses") and self.run.cameras.is_file() and not self.ignore_poses:
@@ -249,7 +278,25 @@ class Pipeline:
                 "total_views": len(views),
                 "unregistered": [],
                 "mean_reprojection_error_px": None,
+                "self_check": self.check_poses(cams.frames),
             }
+        info, frames = self.sfm_poses(views)
+        self.run.save_cameras(CameraSet(frames=frames, extra={"source_format": "sfm"}))
+        info["self_check"] = self.check_poses(frames, info["mean_reprojection_error_px"])
+        return info
+
+    def sfm_poses(self, views: list[dict]) -> tuple[dict, list[Camera]]:
+        """Structure from motion on the views (recon.poses): stage info and registered cameras
+        at the working size (images undistorted in place with a distorting camera model)."""
+        from recon.poses import (
+            SfmParams,
+            depth_scale_to_sfm,
+            prepare_sfm_images,
+            rescale_depth,
+            run_sfm,
+            undistort_in_place,
+        )
+
         work = self.run.root / "sfm"
         sfm_views = []
         for r in views:
@@ -317,19 +364,20 @@ class Pipeline:
                 )
                 undistort_in_place([self.run.mask_path(c.name)], c, result.distortion, nearest=True)
             info["undistorted_distortion"] = [float(x) for x in result.distortion]
-        self.run.save_cameras(CameraSet(frames=frames, extra={"source_format": "sfm"}))
         print(
             f"[recon] poses: registered {len(frames)} of {len(names)} views, mean reprojection "
             f"error {result.mean_reprojection_error_px:.3f} px"
         )
-        return {
-            **info,
-            "registered_views": len(frames),
-            "total_views": len(names),
-            "unregistered": result.unregistered,
-            "mean_reprojection_error_px": result.mean_reprojection_error_px,
-            "sparse_points": len(result.points),
-        }
+        info.update(
+            {
+                "registered_views": len(frames),
+                "total_views": len(names),
+                "unregistered": result.unregistered,
+                "mean_reprojection_error_px": result.mean_reprojection_error_px,
+                "sparse_points": len(result.points),
+            }
+        )
+        return info, frames
 
     def stage_normalize(self) -> dict:
         from recon.normalize import apply_normalization, compute_normalization
@@ -437,7 +485,33 @@ class Pipeline:
     def stage_report(self) -> dict:
         from recon.report import write_report
 
-        return write_report(self.run, self.state, self.cfg.contact_sheet_columns)
+        return write_report(
+            self.run,
+            self.state,
+            self.cfg.contact_sheet_columns,
+            self.thresholds(),
+            accepted=self.cfg.accept_poor_poses,
+        )
+
+    def gate(self, stage: str) -> None:
+        """Stops the run (SineError) after a stage whose self-check found it poor, unless
+        --accept-poor-poses; recon_report.json then says why (verdict 'poor')."""
+        from recon.report import write_partial_report
+        from recon.selfcheck import stop_message
+
+        info = self.state["stages"].get(stage, {})
+        check = info.get("self_check")
+        if not check or check.get("verdict") == "ok":
+            return
+        if self.cfg.accept_poor_poses:
+            print(f"[recon] {stage}: self-check poor, going on (--accept-poor-poses)")
+            return
+        pose_source = self.state["stages"].get("poses", {}).get("pose_source", "")
+        if stage != "report":
+            write_partial_report(self.run, self.state)
+            # the proxy of earlier poses must not meet these cameras in `sine fit`.
+            self.run.proxy_mesh.unlink(missing_ok=True)
+        raise SineError(stop_message(stage, check["reasons"], pose_source))
 
 
 def run_recon(capture: Path | None, run: RunDir, cfg: ReconConfig, ingest_cfg=None) -> dict:
@@ -462,4 +536,5 @@ def run_recon(capture: Path | None, run: RunDir, cfg: ReconConfig, ingest_cfg=No
     run.append_config("recon", {"recon": to_dict(cfg), "ingest": to_dict(ingest_cfg)})
     for stage in STAGES[1:]:
         pipe.run_stage(stage, getattr(pipe, f"stage_{stage}"))
+        pipe.gate(stage)
     return read_json(run.recon_report)

@@ -12,7 +12,9 @@ DESCRIPTION = """\
 Turntable-aware reconstruction as idempotent stages (ingest -> masks -> poses -> normalize ->
 depth -> proxy_mesh -> report). Finished stages are skipped; --force redoes them. Writes
 cameras.json, masks/, depth/, proxy_mesh.ply, recon_report.json and recon_contact_sheet.png into
-the run directory.
+the run directory. Self-checks after the poses and of the proxy mesh (do the cameras explain the
+masks?) stop the run when they find it poor (--accept-poor-poses goes on); recon_report.json
+gets a verdict.
 """
 
 NAME = "recon"
@@ -50,9 +52,12 @@ def run(args) -> int:
         "proxy_triangles",
         "proxy_watertight",
         "silhouette_iou_mean",
+        "verdict",
     )
     for key in keys:
         print(f"{key}: {report.get(key)}")
+    for reason in report.get("verdict_reasons", []):
+        print(f"  poor: {reason}")
     if report.get("unregistered"):
         print(f"unregistered views (dropped): {', '.join(report['unregistered'])}")
     print(f"report: {RunDir(args.out).recon_report}")

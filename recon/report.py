@@ -1,5 +1,9 @@
 """recon_report.json (flat keys) and a contact sheet of masks vs the proxy mesh's silhouettes.
 
+Verdict: "ok", or "poor" with the reasons of every self-check that failed (recon/selfcheck.py:
+the poses stage's hull consistency / reprojection / ring, the proxy's silhouettes here), and
+`poor_accepted` when --accept-poor-poses let the run go on.
+
 Silhouette IoU: the proxy mesh is ray cast into every registered view; its hit mask is compared
 with the view's foreground mask. The contact sheet shows thumbnails with the mask outline in
 green and the proxy silhouette outline in magenta.
@@ -46,8 +50,44 @@ def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.logical_and(a, b).sum() / union) if union else 1.0
 
 
-def write_report(run: RunDir, state: dict, columns: int = 6) -> dict:
-    """Computes silhouette IoU, writes the contact sheet and recon_report.json; returns IoU stats."""
+def flat_report(state: dict) -> dict:
+    """The stages' results as flat keys (each stage's `self_check` as self_check_<stage>)."""
+    report: dict = {}
+    for stage, info in state["stages"].items():
+        for key, value in info.items():
+            if key == "self_check":
+                report[f"self_check_{stage}"] = value
+            elif key not in STAGE_KEYS_SKIP:
+                report[key] = value
+        report[f"seconds_{stage}"] = info.get("seconds")
+    return report
+
+
+def verdict_of(checks: list[dict], accepted: bool = False) -> dict:
+    """verdict ("ok" / "poor"), its reasons and whether a poor one was accepted to go on."""
+    reasons = [r for c in checks if c for r in c.get("reasons", [])]
+    out = {"verdict": "poor" if reasons else "ok", "verdict_reasons": reasons}
+    if reasons:
+        out["poor_accepted"] = bool(accepted)
+    return out
+
+
+def write_partial_report(run: RunDir, state: dict) -> None:
+    """recon_report.json of a run stopped by a self-check: the stages so far and the verdict."""
+    report = flat_report(state)
+    checks = [info.get("self_check") for info in state["stages"].values()]
+    report.update(verdict_of(checks))
+    report["stopped_after"] = list(state["stages"])[-1]
+    write_json(run.recon_report, report)
+
+
+def write_report(
+    run: RunDir, state: dict, columns: int = 6, thresholds=None, accepted: bool = False
+) -> dict:
+    """Computes silhouette IoU, writes the contact sheet and recon_report.json (with the
+    verdict of every self-check); returns IoU stats and the proxy's self-check."""
+    from recon.selfcheck import CheckThresholds, check_proxy
+
     cams = run.load_cameras().frames
     masks = [read_mask(run.mask_path(c.name)) for c in cams]
     sils = proxy_silhouettes(run, cams)
@@ -58,12 +98,8 @@ def write_report(run: RunDir, state: dict, columns: int = 6) -> dict:
     sheet_path = run.root / "recon_contact_sheet.png"
     write_image(sheet_path, np.clip(outline_sheet(images, masks, sils, columns), 0, 1))
 
-    report: dict = {}
-    for stage, info in state["stages"].items():
-        for key, value in info.items():
-            if key not in STAGE_KEYS_SKIP:
-                report[key] = value
-        report[f"seconds_{stage}"] = info.get("seconds")
+    proxy_check = check_proxy([c.name for c in cams], ious, thresholds or CheckThresholds())
+    report = flat_report(state)
     report.update(
         {
             "silhouette_iou_mean": float(np.mean(ious)),
@@ -72,11 +108,17 @@ def write_report(run: RunDir, state: dict, columns: int = 6) -> dict:
                 c.name: round(i, 4) for c, i in zip(cams, ious, strict=True)
             },
             "contact_sheet": sheet_path.name,
+            "self_check_report": proxy_check.to_dict(),
         }
     )
+    checks = [info.get("self_check") for info in state["stages"].values()]
+    report.update(verdict_of([*checks, proxy_check.to_dict()], accepted))
     report.setdefault("registered_views", len(cams))
     report.setdefault("unregistered", [])
     stage_seconds = [v for k, v in report.items() if k.startswith("seconds_") and v is not None]
     report["seconds_total_before_report"] = float(sum(stage_seconds))
     write_json(run.recon_report, report)
-    return {"silhouette_iou_mean": report["silhouette_iou_mean"]}
+    return {
+        "silhouette_iou_mean": report["silhouette_iou_mean"],
+        "self_check": proxy_check.to_dict(),
+    }
