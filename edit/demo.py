@@ -49,12 +49,7 @@ EDIT_AZIMUTH = 110.0  # degrees: the default view K is the training view nearest
 
 # SfM on a turntable of a symmetric, sparsely textured object: neighbours only (no matches
 # between mirror-image views), affine SIFT with domain-size pooling.
-RECON = {
-    "exhaustive_below": 0,
-    "sequential_overlap": 4,
-    "sfm_affine_shape": True,
-    "sfm_domain_size_pooling": True,
-}
+RECON = {"exhaustive_below": 0, "sfm_affine_shape": True, "sfm_domain_size_pooling": True}
 # Defaults of the full run and of --fast: views, working width, orbit frames, summary rows, and
 # the stage options that differ from each command's defaults (the edit: iterations only).
 FULL = {
@@ -62,7 +57,7 @@ FULL = {
     "run_width": 256,
     "orbit": 48,
     "rows": 6,
-    "recon": RECON,
+    "recon": {**RECON, "sequential_overlap": 5},
     "fit": {"iterations": 600, "batch_rays": 1024},
     "features": {},
     "edit": {},
@@ -72,7 +67,12 @@ FAST = {
     "run_width": 128,
     "orbit": 24,
     "rows": 5,
-    "recon": {**RECON, "tsdf_voxel_size": 1 / 128, "target_triangles": 20_000},
+    "recon": {
+        **RECON,
+        "sequential_overlap": 4,
+        "tsdf_voxel_size": 1 / 128,
+        "target_triangles": 20_000,
+    },
     "fit": {"iterations": 300, "batch_rays": 512, "log2_table": 15, "previews": 2},
     "features": {"iterations": 150, "batch_rays": 2048, "log2_table": 13, "previews": 1},
     "edit": {"iterations": 120, "previews": 0},
