@@ -39,8 +39,11 @@ class PositionalEncoding(nn.Module):
 class DeformationField(nn.Module):
     """x [N, 3] -> x + strength * MLP(PE(x)) [N, 3] (F_dG, or F'_dG for the forward direction)."""
 
-    def __init__(self, n_freqs: int = 4, hidden: int = 128, init_range: float = 1e-4):
+    def __init__(self, n_freqs: int = 4, hidden: int = 128, init_range: float = 1e-4, gate=None):
         super().__init__()
+        # optional module x [N, 3] -> [N] scaling the displacement; not a submodule (its owner,
+        # e.g. EditingField, saves it once)
+        object.__setattr__(self, "gate", gate)
         self.encoding = PositionalEncoding(n_freqs)
         self.mlp = nn.Sequential(
             nn.Linear(self.encoding.output_dim(3), hidden), nn.ReLU(), nn.Linear(hidden, 3)
@@ -49,8 +52,9 @@ class DeformationField(nn.Module):
         nn.init.uniform_(self.mlp[-1].bias, -init_range, init_range)
 
     def displacement(self, x: torch.Tensor) -> torch.Tensor:
-        """The learned offset MLP(PE(x)), [N, 3]."""
-        return self.mlp(self.encoding(x))
+        """The learned offset MLP(PE(x)) (times the gate, when there is one), [N, 3]."""
+        disp = self.mlp(self.encoding(x))
+        return disp if self.gate is None else disp * self.gate(x)[:, None]
 
     def forward(self, x: torch.Tensor, strength: float = 1.0) -> torch.Tensor:
         return x + strength * self.displacement(x)

@@ -19,19 +19,22 @@ import torch
 from torch import nn
 
 from edit.deformation import DeformationField
+from edit.edit_gate import EditGate
 from edit.texture_field import TextureField
 from render.hashgrid import HashGridConfig
 from render.renderer import FieldQuery
 
 
 class EditingField(nn.Module):
-    """F_dG, F'_dG and F_dT of one edit."""
+    """F_dG, F'_dG and F_dT of one edit, all three scaled by one `EditGate` (1 everywhere until
+    it is set: see edit/edit_gate.py)."""
 
     def __init__(self, texture_grid: HashGridConfig | None = None, n_freqs: int = 4):
         super().__init__()
-        self.deform = DeformationField(n_freqs)
-        self.forward_deform = DeformationField(n_freqs)
-        self.texture = TextureField(texture_grid)
+        self.gate = EditGate()
+        self.deform = DeformationField(n_freqs, gate=self.gate)
+        self.forward_deform = DeformationField(n_freqs, gate=self.gate)
+        self.texture = TextureField(texture_grid, gate=self.gate)
 
 
 def edited_query(template: nn.Module, editing: EditingField, strength: float = 1.0) -> FieldQuery:

@@ -123,6 +123,14 @@ class GeometryEditConfig:
         0.02, "depth tolerance (run units) of visible proxy vertices", low=0
     )
     arap_iterations: int = option(50, "ARAP iterations of the shape prior", low=1)
+    gate: bool = option(
+        True,
+        "restrict the editing field to near what the shape prior moved (beyond the paper: the "
+        "rest renders exactly as the template); --no-gate relies on L_reg alone",
+    )
+    gate_margin: float = option(
+        0.2, "distance (run units) from the prior's moved part at which the gate reaches 0", low=0
+    )
     moved_tol: float = option(
         0.01, "prior displacement (run units) below which a vertex is unedited", low=0
     )
@@ -364,7 +372,13 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
         query = field
     else:
         freeze(template)
-        editing = EditingField(template.grid.cfg).to(device)
+        editing = EditingField(template.grid.cfg)
+        if cfg.gate:
+            moved = setup.prior.moved(cfg.moved_tol)
+            ends = (setup.proxy_vertices[moved], setup.prior.vertices[moved])
+            path = [(1 - a) * ends[0] + a * ends[1] for a in np.linspace(0, 1, 5)]
+            editing.gate.set_from_points(np.concatenate(path), cfg.band_width, cfg.gate_margin)
+        editing = editing.to(device)
         tex = editing.texture
         deform_params = list(editing.deform.parameters()) + list(
             editing.forward_deform.parameters()

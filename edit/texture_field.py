@@ -38,8 +38,12 @@ class TextureField(nn.Module):
         hidden: int = 128,
         bound: float = 1.0,
         window_start: float = 1.0,
+        gate=None,
     ):
         super().__init__()
+        # optional module x [N, 3] -> [N] scaling the modification colour; not a submodule (its owner,
+        # e.g. EditingField, saves it once)
+        object.__setattr__(self, "gate", gate)
         self.grid = HashGrid(grid or HashGridConfig(log2_table=15), bound=bound)
         self.mlp = nn.Sequential(
             nn.Linear(self.grid.output_dim, hidden), nn.ReLU(), nn.Linear(hidden, 3)
@@ -58,4 +62,5 @@ class TextureField(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         feats = self.grid(x).view(x.shape[0], self.grid.cfg.n_levels, -1)  # [N, L, F]
         feats = (feats * self.window[None, :, None]).flatten(1)
-        return torch.sigmoid(self.mlp(feats)) * 2.0 - 1.0
+        mod = torch.sigmoid(self.mlp(feats)) * 2.0 - 1.0
+        return mod if self.gate is None else mod * self.gate(x)[:, None]
