@@ -398,10 +398,6 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
         warped = warp_vertices(editing.forward_deform, setup.proxy_vertices)
         state = {"editing": editing, "prior_vertices": setup.prior.vertices, "warped": warped}
         query = edited_query(template, editing)
-        proxy_v = torch.from_numpy(setup.proxy_vertices).float().to(device)
-        prior_v = torch.from_numpy(setup.prior.vertices).float().to(device)
-        unmoved = prior_v[torch.from_numpy(~setup.prior.moved(cfg.moved_tol)).to(device)]
-        surface = torch.cat([proxy_v, prior_v])
     decay = exponential_decay(cfg.lr_final_factor, cfg.iterations)
     warm = max(cfg.warmup_steps, 1)
     # Adam's first steps move every weight by ~lr at once: the deformation would jump far from
@@ -409,6 +405,11 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
     schedules = {"deform": lambda k: min(1.0, (k + 1) / warm) * decay(k)}
     trainer.start(state, groups, schedules, lr_final_factor=cfg.lr_final_factor)
     gen = trainer.generator
+    if cfg.method == "ours":  # after `start`: a resumed run's prior is the checkpointed one
+        proxy_v = torch.from_numpy(setup.proxy_vertices).float().to(device)
+        prior_v = torch.from_numpy(setup.prior.vertices).float().to(device)
+        unmoved = prior_v[torch.from_numpy(~setup.prior.moved(cfg.moved_tol)).to(device)]
+        surface = torch.cat([proxy_v, prior_v])
 
     def rebuild(rewarp: bool = True):
         """The sampler of the edited space and the view-K rays that need the field."""
