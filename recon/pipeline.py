@@ -99,6 +99,22 @@ class ReconConfig:
         "points with large reprojection error or small triangulation angle",
     )
     seed: int = option(0, "poses: random seed of SfM", low=0)
+    turntable: str = option(
+        "auto",
+        "poses: turntable pose model (one rotation axis, one angle per view, solved from the "
+        "silhouettes; seeded by the views SfM registered consistently): on = always; auto = when "
+        "SfM registers fewer than --min-registered-fraction of the views or its self-check "
+        "fails, and the views look like an ordered turntable sequence; off = SfM only",
+        choices=["auto", "on", "off"],
+    )
+    turntable_step: float | None = option(
+        None,
+        "poses: degrees the object turns between consecutive views (turntable model; default: "
+        "searched around 360 / views)",
+        low=-180.0,
+        high=180.0,
+    )
+    turntable_iterations: int = option(300, "poses: refinement steps of the turntable model", low=0)
     min_silhouette_iou: float = option(
         0.8,
         "poses: self-check: least mean IoU of the masks with the silhouettes of the visual hull "
@@ -164,6 +180,21 @@ def stage_options(cfg: ReconConfig, stage: str, ignore_poses: bool = False) -> d
     if stage == "poses":
         options["ignore_poses"] = ignore_poses
     return options
+
+
+def views_as_cameras(views: list[dict]) -> list[Camera]:
+    """Stand-in cameras carrying only the names of the views (to read their masks)."""
+    return [Camera(r["width"], r["height"], 1.0, 1.0, 0.0, 0.0, name=r["name"]) for r in views]
+
+
+def sfm_too_few(registered: int, total: int, cfg: ReconConfig) -> str:
+    return (
+        f"structure from motion registered only {registered} of {total} views "
+        f"(< {cfg.min_registered_fraction:.0%}). Try: check the masks (masks/ in the run "
+        "directory, or give --masks DIR), --turntable on for a turntable capture, capture with "
+        "more overlap between neighbouring views (<= 10-15 degrees of turn) and more texture, "
+        "or give known poses (transforms.json, COLMAP, ...)"
+    )
 
 
 class Pipeline:
@@ -256,11 +287,11 @@ class Pipeline:
 
     def check_poses(self, cams, reprojection_px=None) -> dict:
         """The self-check of poses (recon.selfcheck) as a dict for the stage info."""
-        from recon.selfcheck import check_poses, looks_like_turntable
+        from recon.selfcheck import check_poses
 
         masks = self.masks_for(cams)
-        ordered = "ordered" if looks_like_turntable(masks) else False
-        verdict = check_poses(cams, masks, self.thresholds(), reprojection_px, turntable=ordered)
+        turntable = self.cfg.turntable == "on"
+        verdict = check_poses(cams, masks, self.thresholds(), reprojection_px, turntable=turntable)
         print(
             f"[recon] poses: self-check {verdict.verdict} (hull silhouette IoU mean "
             f"{verdict.numbers['hull_iou_mean']:.3f})"
@@ -268,6 +299,9 @@ class Pipeline:
         return verdict.to_dict()
 
     def stage_poses(self) -> dict:
+        """Poses from the capture, SfM, or the turntable model (module doc of recon.turntable):
+        `turntable` on = always; auto = when SfM registers too few views or its self-check
+        fails and the views look like an ordered turntable sequence; off = SfM only."""
         captures = self.run.load_captures()
         views = self.views()
         if captures.get("poses") and self.run.cameras.is_file() and not self.ignore_poses:
@@ -280,22 +314,78 @@ class Pipeline:
                 "mean_reprojection_error_px": None,
                 "self_check": self.check_poses(cams.frames),
             }
-        info, frames = self.sfm_poses(views)
-        self.run.save_cameras(CameraSet(frames=frames, extra={"source_format": "sfm"}))
-        info["self_check"] = self.check_poses(frames, info["mean_reprojection_error_px"])
-        return info
+        mode = self.cfg.turntable
+        try:
+            info, frames, sfm = self.sfm_poses(views, partial=mode != "off")
+        except SineError as exc:
+            if mode == "off":
+                raise
+            info, frames, sfm = {"sfm_error": str(exc)}, [], None
+        n = len(views)
+        enough = bool(frames) and len(frames) >= self.cfg.min_registered_fraction * n
+        check = self.check_poses(frames, info["mean_reprojection_error_px"]) if enough else None
+        fallback = None
+        if mode == "on":
+            fallback = "--turntable on"
+        elif not enough:
+            fallback = f"SfM registered {len(frames)} of {n} views"
+        elif check["verdict"] != "ok":
+            fallback = "the SfM self-check failed"
+        if fallback and mode == "auto":
+            from recon.selfcheck import looks_like_turntable
 
-    def sfm_poses(self, views: list[dict]) -> tuple[dict, list[Camera]]:
-        """Structure from motion on the views (recon.poses): stage info and registered cameras
-        at the working size (images undistorted in place with a distorting camera model)."""
-        from recon.poses import (
-            SfmParams,
-            depth_scale_to_sfm,
-            prepare_sfm_images,
-            rescale_depth,
-            run_sfm,
-            undistort_in_place,
+            if not looks_like_turntable(self.masks_for(views_as_cameras(views))):
+                print(f"[recon] poses: {fallback}; the views do not look like a turntable")
+                fallback = None
+        if fallback is None:
+            if not enough:
+                raise SineError(info.get("sfm_error") or sfm_too_few(len(frames), n, self.cfg))
+            self.use_sfm(views, sfm, frames, info)
+            info["self_check"] = check
+            return info
+        print(f"[recon] poses: turntable model ({fallback})")
+        sfm_info = {
+            "sfm_pose_source": info.get("pose_source"),
+            "sfm_registered_views": info.get("registered_views", 0),
+            "sfm_mean_reprojection_error_px": info.get("mean_reprojection_error_px"),
+            "sfm_error": info.get("sfm_error"),
+            "sfm_self_check": check,
+        }
+        turntable = self.turntable_poses(views, sfm)
+        return {**turntable, "turntable_reason": fallback, **sfm_info}
+
+    def sfm_params(self, partial: bool):
+        from recon.poses import SfmParams
+
+        return SfmParams(
+            camera_model=self.cfg.camera_model,
+            exhaustive_below=self.cfg.exhaustive_below,
+            sequential_overlap=self.cfg.sequential_overlap,
+            min_registered_fraction=0.0 if partial else self.cfg.min_registered_fraction,
+            mapper=self.cfg.mapper,
+            seed=self.cfg.seed,
+            peak_threshold=self.cfg.sfm_peak_threshold,
+            num_threads=self.cfg.sfm_threads,
+            estimate_affine_shape=self.cfg.sfm_affine_shape,
+            domain_size_pooling=self.cfg.sfm_domain_size_pooling,
+            guided_matching=self.cfg.sfm_guided_matching,
+            final_ba=self.cfg.sfm_final_ba,
         )
+
+    def prior_intrinsics(self, views: list[dict]) -> dict[str, Camera]:
+        """Intrinsics the capture carries (ingest keeps them per record unless
+        --ignore-intrinsics): --ignore-poses drops only the extrinsics."""
+        return {
+            r["name"]: Camera(width=r["width"], height=r["height"], **r["intrinsics"])
+            for r in views
+            if r.get("intrinsics")
+        }
+
+    def sfm_poses(self, views: list[dict], partial: bool = False):
+        """Structure from motion on the views (recon.poses): stage info, the registered cameras
+        at the working size and the SfmResult (nothing written yet: see `use_sfm`).
+        `partial`: too few registered views is not an error here."""
+        from recon.poses import prepare_sfm_images, run_sfm
 
         work = self.run.root / "sfm"
         sfm_views = []
@@ -311,38 +401,50 @@ class Pipeline:
             min_object_px=self.cfg.sfm_min_object_px,
             max_upscale=self.cfg.sfm_max_upscale,
         )
-        params = SfmParams(
-            camera_model=self.cfg.camera_model,
-            exhaustive_below=self.cfg.exhaustive_below,
-            sequential_overlap=self.cfg.sequential_overlap,
-            min_registered_fraction=self.cfg.min_registered_fraction,
-            mapper=self.cfg.mapper,
-            seed=self.cfg.seed,
-            peak_threshold=self.cfg.sfm_peak_threshold,
-            num_threads=self.cfg.sfm_threads,
-            estimate_affine_shape=self.cfg.sfm_affine_shape,
-            domain_size_pooling=self.cfg.sfm_domain_size_pooling,
-            guided_matching=self.cfg.sfm_guided_matching,
-            final_ba=self.cfg.sfm_final_ba,
-        )
         names = [r["name"] for r in views]
-        # --ignore-poses drops only the extrinsics: intrinsics the capture carries (ingest keeps
-        # them per record unless --ignore-intrinsics) are fixed during SfM.
-        intrinsics = {
-            r["name"]: Camera(width=r["width"], height=r["height"], **r["intrinsics"])
-            for r in views
-            if r.get("intrinsics")
-        }
-        result = run_sfm(image_dir, mask_dir, names, work, params, intrinsics=intrinsics)
+        result = run_sfm(
+            image_dir,
+            mask_dir,
+            names,
+            work,
+            self.sfm_params(partial),
+            intrinsics=self.prior_intrinsics(views),
+        )
         sfm_width = int(cv2.imread(str(image_dir / names[0]), cv2.IMREAD_UNCHANGED).shape[1])
+        by_name = {r["name"]: r for r in views}
+        frames = [
+            c.resized(by_name[c.name]["width"], by_name[c.name]["height"]).replace(
+                split=by_name[c.name]["split"]
+            )
+            for c in result.cameras
+        ]
+        print(
+            f"[recon] poses: registered {len(frames)} of {len(names)} views, mean reprojection "
+            f"error {result.mean_reprojection_error_px:.3f} px"
+        )
         info = {
             "pose_source": f"sfm ({result.mapper})",
             "sfm_models": result.num_models,
             "sfm_intrinsics": result.intrinsics,
             "sfm_image_width": sfm_width,
+            "registered_views": len(frames),
+            "total_views": len(names),
+            "unregistered": result.unregistered,
+            "mean_reprojection_error_px": result.mean_reprojection_error_px,
+            "sparse_points": len(result.points),
         }
+        return info, frames, result
+
+    def use_sfm(self, views: list[dict], result, frames: list[Camera], info: dict) -> None:
+        """Writes the SfM cameras; dataset depth into SfM units; undistortion in place."""
+        from recon.poses import depth_scale_to_sfm, rescale_depth, undistort_in_place
+
         by_name = {r["name"]: r for r in views}
-        depth_paths = {n: self.run.depth_path(n) for n in names if by_name[n].get("depth")}
+        depth_paths = {
+            r["name"]: self.run.depth_path(r["name"])
+            for r in views
+            if by_name[r["name"]].get("depth")
+        }
         if depth_paths:
             factor = depth_scale_to_sfm(result.observations, depth_paths, result.cameras)
             if factor is None:
@@ -351,12 +453,6 @@ class Pipeline:
                 )
             rescale_depth(list(depth_paths.values()), factor)
             info["dataset_depth_to_sfm_scale"] = factor
-        frames = [
-            c.resized(by_name[c.name]["width"], by_name[c.name]["height"]).replace(
-                split=by_name[c.name]["split"]
-            )
-            for c in result.cameras
-        ]
         if np.any(result.distortion != 0):
             for c in frames:
                 undistort_in_place(
@@ -364,20 +460,83 @@ class Pipeline:
                 )
                 undistort_in_place([self.run.mask_path(c.name)], c, result.distortion, nearest=True)
             info["undistorted_distortion"] = [float(x) for x in result.distortion]
+        self.run.save_cameras(CameraSet(frames=frames, extra={"source_format": "sfm"}))
+
+    def turntable_poses(self, views: list[dict], sfm) -> dict:
+        """Every view posed by the turntable model (recon.turntable), seeded by the largest SfM
+        model whose views are consistent; writes cameras.json; stage info."""
+        from recon.poses import rescale_depth
+        from recon.selfcheck import check_poses
+        from recon.turntable import (
+            TurntableParams,
+            choose_seed,
+            depth_scale_from_rims,
+            solve_turntable,
+        )
+        from render.device import torch_threads
+
+        names = [r["name"] for r in views]
+        by_name = {r["name"]: r for r in views}
+        masks = [read_mask(self.run.mask_path(n)) for n in names]
+        h, w = masks[0].shape
+        prior = self.prior_intrinsics(views)
+        seed = choose_seed(sfm.models if sfm else [], names, masks, self.thresholds())
+        intrinsics = prior.get(names[0])
+        if intrinsics is None and seed is not None:
+            intrinsics = seed[0][0]  # SfM's estimate
+        params = TurntableParams(
+            step_deg=self.cfg.turntable_step, iterations=self.cfg.turntable_iterations
+        )
+        with torch_threads(self.cfg.sfm_threads):
+            result = solve_turntable(
+                masks,
+                params,
+                intrinsics=intrinsics.resized(w, h) if intrinsics is not None else None,
+                seed=(([c.resized(w, h) for c in seed[0]], seed[1]) if seed is not None else None),
+                names=names,
+            )
+        frames = [
+            c.resized(by_name[c.name]["width"], by_name[c.name]["height"]).replace(
+                split=by_name[c.name]["split"]
+            )
+            for c in result.cameras
+        ]
+        info = {
+            "pose_source": "turntable",
+            "turntable_init": result.init,
+            "turntable_loss_px": round(result.loss_px, 4),
+            "turntable_elevation_deg": round(result.elevation_deg, 3),
+            "turntable_steps_deg": [round(float(x), 3) for x in np.diff(result.angles_deg)],
+            "turntable_focal_refined": result.focal_refined,
+            "turntable_angles_observable": result.angles_observable,
+            "registered_views": len(frames),
+            "total_views": len(views),
+            "unregistered": [],
+            "mean_reprojection_error_px": None,
+        }
+        depth_paths = [self.run.depth_path(n) for n in names if by_name[n].get("depth")]
+        if depth_paths:
+            factor = depth_scale_from_rims(
+                frames,
+                [read_mask(self.run.mask_path(c.name)) for c in frames],
+                [self.run.depth_path(c.name) for c in frames],
+            )
+            rescale_depth(depth_paths, factor)
+            info["dataset_depth_to_turntable_scale"] = factor
+        self.run.save_cameras(CameraSet(frames=frames, extra={"source_format": "turntable"}))
+        verdict = check_poses(frames, self.masks_for(frames), self.thresholds(), turntable=True)
+        if not result.angles_observable:
+            verdict.verdict = "poor"
+            verdict.reasons.append(
+                "the silhouettes do not determine the turntable's angles (turning views by 5 "
+                "degrees changes nothing: a body of revolution?), so the poses are a guess"
+            )
         print(
-            f"[recon] poses: registered {len(frames)} of {len(names)} views, mean reprojection "
-            f"error {result.mean_reprojection_error_px:.3f} px"
+            f"[recon] poses: turntable self-check {verdict.verdict} (hull silhouette IoU mean "
+            f"{verdict.numbers['hull_iou_mean']:.3f})"
         )
-        info.update(
-            {
-                "registered_views": len(frames),
-                "total_views": len(names),
-                "unregistered": result.unregistered,
-                "mean_reprojection_error_px": result.mean_reprojection_error_px,
-                "sparse_points": len(result.points),
-            }
-        )
-        return info, frames
+        info["self_check"] = verdict.to_dict()
+        return info
 
     def stage_normalize(self) -> dict:
         from recon.normalize import apply_normalization, compute_normalization

@@ -19,8 +19,9 @@ SfM images are upsampled until the median foreground bounding-box diagonal reach
 Final bundle adjustment: after mapping, points with a large reprojection error or a small
 triangulation angle are filtered and the model is re-adjusted with a robust (Cauchy) loss and
 tight tolerances, twice.
-The largest model is kept; fewer than `min_registered_fraction` of the views registered is an
-error that says what to try. With a distorting camera model the working images and masks are
+The largest model is kept (all models' cameras come back too: the turntable model takes its
+starting values from a consistent one); fewer than `min_registered_fraction` of the views
+registered is an error that says what to try. With a distorting camera model the working images and masks are
 undistorted in place afterwards (originals kept in sfm/images_distorted) so cameras.json stays
 pinhole.
 """
@@ -28,7 +29,7 @@ pinhole.
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -74,6 +75,8 @@ class SfmResult:
     observations: dict  # image name -> (keypoints [M, 2], their 3D points [M, 3])
     mapper: str  # "incremental" or "global": which mapper gave the kept model
     intrinsics: str = "estimated"  # "fixed (prior)" when the capture's intrinsics were used
+    # every model the mappers found: (mapper, its registered cameras in input order)
+    models: list[tuple[str, list[Camera]]] = field(default_factory=list)
 
 
 def _write_pairs(path: Path, names: list[str], overlap: int) -> None:
@@ -334,6 +337,7 @@ def run_sfm(
             "(masks/ in the run directory), capture with more overlap between neighbouring views "
             "(<= 10-15 degrees of turn), more texture on the object, or give known poses"
         )
+    all_models = [(key[0], _model_cameras(r, names)) for key, r in models.items()]
     # most views registered wins; incremental first on ties (it is listed first).
     best_key = max(models, key=lambda k: models[k].num_reg_images())
     best = models[best_key]
@@ -372,8 +376,19 @@ def run_sfm(
         distortion=distortion,
         observations=observations,
         intrinsics="fixed (prior)" if fixed else "estimated",
+        models=all_models,
     )
     return result
+
+
+def _model_cameras(reconstruction, names: list[str]) -> list[Camera]:
+    """The registered cameras of one SfM model, in the order of `names`."""
+    by_name = {
+        image.name: _camera_from_colmap(image, reconstruction.cameras[image.camera_id])[0]
+        for image in reconstruction.images.values()
+        if image.has_pose
+    }
+    return [by_name[n] for n in names if n in by_name]
 
 
 def _write_per_image_intrinsics(db_path: Path, prior: dict[str, tuple]) -> None:
