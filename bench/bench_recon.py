@@ -5,9 +5,14 @@
     .venv/bin/python bench/bench_recon.py --variants /tmp/bench_recon [--datasets spot temple dino]
 
 The first two forms score one finished run. `--variants OUT` runs `sine recon` (library call)
-on each dataset with each variant of the SfM/depth options into OUT/<dataset>-<variant> and
-prints one table: registered views, median rotation / centre error, proxy Chamfer-L1 (spot),
-silhouette IoU, watertightness and seconds, variants side by side.
+on each dataset with each variant of the SfM/depth/turntable options into
+OUT/<dataset>-<variant> and prints one table: pose source, registered views, median rotation /
+centre error, proxy Chamfer-L1 (spot), the self-check's hull IoU, silhouette IoU, verdict,
+watertightness and seconds, variants side by side (a run the self-check stopped is scored from
+what it wrote: verdict STOPPED).
+
+    .venv/bin/python bench/bench_recon.py --variants /tmp/bt --datasets toycar figurine dinoSR \
+        temple --which turntable=off turntable=auto
 
 Aligns the recon's camera centres to the ground truth by a similarity (Umeyama), then prints
 per-view and median rotation error (degrees) and camera-centre error (% of the ring radius =
@@ -108,6 +113,9 @@ VARIANTS = {
     "default": ({}, {}),
     "hull": ({"depth_method": "visual_hull"}, {}),
     "hull+stereo": ({"depth_method": "visual_hull+stereo"}, {}),
+    "turntable=off": ({"turntable": "off", "accept_poor_poses": True}, {}),
+    "turntable=auto": ({"turntable": "auto"}, {}),
+    "turntable=on": ({"turntable": "on"}, {}),
 }
 DEPTH_VARIANTS = ("default", "hull", "hull+stereo")  # the ones that apply with known poses
 
@@ -121,7 +129,18 @@ def datasets(out: Path) -> dict:
         mesh = DATA / "meshes" / "spot" / "spot_triangulated.obj"
         synthesize(SynthConfig(mesh=mesh, out=spot, views=36, width=320, height=240))
     temple_par = DATA / "middlebury-templeSparseRing" / "templeSR_par.txt"
+    dino_par = DATA / "middlebury-dinoSparseRing" / "dinoSR_par.txt"
+    toys = {}
+    for name in ("toycar", "figurine"):
+        cap = out / f"{name}160"
+        if not (cap / "transforms.json").is_file():
+            from recon.synth import SynthConfig, synthesize
+
+            synthesize(SynthConfig(procedural=name, out=cap, views=36, width=160, height=160))
+        toys[name] = (cap, True, lambda cap=cap: _gt_cameras(cap / "cameras.json"), None)
     return {
+        **toys,
+        "dinoSR": (dino_par.parent, True, lambda: _gt_par(dino_par), None),
         "spot": (spot, True, lambda: _gt_cameras(spot / "cameras.json"), spot / "mesh.ply"),
         "spot_known": (spot, False, lambda: _gt_cameras(spot / "cameras.json"), spot / "mesh.ply"),
         "temple": (temple_par.parent, True, lambda: _gt_par(temple_par), None),
@@ -154,6 +173,9 @@ def score_run(run: Path, gt_by_name: dict | None, gt_mesh: Path | None) -> dict:
         "depth": report.get("depth_source"),
         "s_poses": report.get("seconds_poses"),
         "s_total": report.get("seconds_total_before_report"),
+        "verdict": report.get("verdict"),
+        "pose_source": report.get("pose_source"),
+        "hull_iou": (report.get("self_check_poses") or {}).get("hull_iou_mean"),
     }
     if gt_by_name:
         est_by_name = {Path(c.name).stem: c for c in load_cameras(run / "cameras.json").frames}
@@ -192,10 +214,13 @@ def run_variants(out: Path, names: list[str], variants: list[str]) -> int:
                 row = score_run(run, gt() if gt else None, gt_mesh)
             except Exception as exc:  # noqa: BLE001 - a failed variant is a table row
                 row = {"registered": f"FAILED: {exc}"[:60]}
+                if (run / "recon_report.json").is_file() and (run / "cameras.json").is_file():
+                    row = {**score_run(run, gt() if gt else None, None), "verdict": "STOPPED"}
             rows.append({"dataset": name, "variant": variant, **row})
             print(rows[-1], flush=True)
-    cols = ["dataset", "variant", "registered", "rot_med", "ctr_med", "chamfer_pct", "iou",
-            "watertight", "reproj", "depth", "s_poses", "s_total"]  # fmt: skip
+    cols = ["dataset", "variant", "pose_source", "registered", "rot_med", "ctr_med",
+            "chamfer_pct", "hull_iou", "iou", "verdict", "watertight", "reproj", "depth",
+            "s_poses", "s_total"]  # fmt: skip
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
     for row in rows:
@@ -217,7 +242,8 @@ def main() -> int:
         "--datasets",
         nargs="+",
         default=["spot", "spot_known", "temple", "dino"],
-        help="datasets of the variant table (spot, spot_known, temple, dino)",
+        help="datasets of the variant table (spot, spot_known, temple, dino = oxford-dinosaur, "
+        "dinoSR = middlebury-dinoSparseRing, toycar, figurine = procedural 36 x 160 px)",
     )
     parser.add_argument(
         "--which", nargs="+", default=list(VARIANTS), help="variants to run (see VARIANTS)"
