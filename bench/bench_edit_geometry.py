@@ -13,7 +13,8 @@ excluded) against the ground truth:
 - heldout_ssim (whole image), heldout_silhouette_iou (opacity > 0.5 vs GT mask);
 - unedited_psnr: the edit vs the template's own rendering where the GT edit did not change the
   view (GT original and edited images agree, on the object): does the rest stay intact?
-`--methods ... symmetric` adds ours with the mirrored prior (`--symmetric`).
+`--methods ... symmetric` adds ours with the mirrored prior (`--symmetric`); `template` scores the
+unedited template against the edited ground truth (the reference every edit should beat).
 Writes DIR/results.json ({"cases": [...]}) and DIR/<object>_sheet.png (rows: held-out views;
 columns: template | each method | ground truth). `--quick`: toycar only, ours + naive, fewer steps.
 """
@@ -142,7 +143,7 @@ def main() -> int:
         "--methods",
         nargs="+",
         default=["ours", "naive", "no_gp", "no_cyc", "no_reg"],
-        choices=["ours", "naive", *VARIANTS],
+        choices=["template", "ours", "naive", *VARIANTS],
     )
     ap.add_argument("--size", type=int, default=256, help="image size (square)")
     ap.add_argument("--views", type=int, default=36, help="views on the ring")
@@ -189,9 +190,12 @@ def main() -> int:
             if args.iterations:
                 cfg.iterations = args.iterations
             t1 = time.perf_counter()
-            m = run_geometry_edit(run.root, k, target, method, cfg, mask=mask, progress=False)
-            seconds = m.get("total_seconds", time.perf_counter() - t1)
-            scene = load_scene(run.root, edit=method)
+            if method == "template":  # the reference: no edit at all
+                m, seconds, scene = {}, 0.0, template
+            else:
+                m = run_geometry_edit(run.root, k, target, method, cfg, mask=mask, progress=False)
+                seconds = m.get("total_seconds", time.perf_counter() - t1)
+                scene = load_scene(run.root, edit=method)
             metrics, rows = score(run, syn, scene, template, views)
             case = {
                 "object": obj,
