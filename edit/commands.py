@@ -1,5 +1,6 @@
 """`sine` subcommands of the editing side: features (DINO feature field), masks (semantic
-masks), snapshot and target (a view to edit, 2D editing targets), render/export/view/eval
+masks), snapshot and target (a view to edit, 2D editing targets), edit (the editing field),
+render/export/view/eval
 (outputs) and demo (built by `sine_cli`)."""
 
 from __future__ import annotations
