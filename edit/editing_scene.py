@@ -19,13 +19,45 @@ import torch
 
 from edit.compositor import Compositor, composite_hwc
 from edit.editing_field import EditingField, combine, edited_query, warp_vertices
-from edit.scene import Scene, TemplateScene, load_template_scene, radial_normals
+from edit.template_scene import Scene, TemplateScene, load_template_scene, radial_normals
 from recon.rundir import RunDir
 from render.errors import SineError
+from render.io import load_torch
 from render.mesh_export import surface_colors
 from render.renderer import render_image
-from render.sampler import BandSampler
+from render.sampler import BandSampler, ProxyRaycaster
 from render.template_field import freeze
+
+
+def load_edit_field(edit_dir: Path, device) -> dict:
+    path = Path(edit_dir) / "edit_field.pt"
+    if not path.is_file():
+        raise SineError(
+            f"{path} not found; run `sine edit` first (or it was interrupted: re-run it)"
+        )
+    return load_torch(path)
+
+
+def edited_sampler(
+    editing: EditingField,
+    proxy_vertices,
+    triangles,
+    band: float,
+    samples: tuple[int, int],
+    strength=1.0,
+    extra=None,
+    warped=None,
+) -> BandSampler:
+    """Band sampler (`samples`: band and coarse samples per ray) around F'_dG(proxy), united with
+    `extra` vertices [V, 3] of the same triangles (e.g. the prior mesh) when given; `warped`
+    [V, 3]: F'_dG(proxy) already computed."""
+    if warped is None:
+        warped = warp_vertices(editing.forward_deform, proxy_vertices, strength)
+    verts, tris = warped, triangles
+    if extra is not None:
+        verts = np.concatenate([warped, extra])
+        tris = np.concatenate([triangles, triangles + len(warped)])
+    return BandSampler(ProxyRaycaster((verts, tris), inflate=band), *samples)
 
 
 @dataclass
@@ -51,8 +83,6 @@ class EditScene(Scene):
 
     def sampler(self) -> BandSampler:
         if self._sampler is None:
-            from edit.geometry_edit import edited_sampler
-
             fit_cfg = self.template.fit_config
             vertices, triangles = self.mesh()
             samples = (fit_cfg.band_samples, fit_cfg.coarse_samples)
@@ -134,8 +164,6 @@ def load_edit_scene(run: RunDir, name: str, strength: float, device: torch.devic
 
 def scene_from_folder(run: RunDir, edit_dir, strength: float, device: torch.device) -> Scene:
     """The scene of the edit whose edit_field.pt is in `edit_dir`."""
-    from edit.geometry_edit import load_edit_field
-
     if not 0.0 <= strength <= 1.0:
         raise SineError(f"--strength must be in [0, 1], not {strength}")
     name = Path(edit_dir).name.removesuffix(".partial")

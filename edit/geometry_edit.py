@@ -45,8 +45,9 @@ import torch
 from edit import geometry_losses as losses
 from edit.edit_inputs import difference_region, read_region, read_target
 from edit.editing_field import EditingField, combine, edited_query, warp_vertices
-from edit.editing_scene import scene_from_folder
+from edit.editing_scene import edited_sampler, scene_from_folder
 from edit.shape_prior import PriorMesh, build_prior_mesh
+from edit.template_scene import load_template_scene
 from recon.fit import load_fitted, make_sampler, psnr
 from recon.rundir import RunDir
 from recon.training import Trainer, exponential_decay
@@ -56,7 +57,6 @@ from render.errors import SineError
 from render.io import (
     atomic_path,
     file_sha256,
-    load_torch,
     save_torch,
     write_image,
     write_json,
@@ -64,7 +64,6 @@ from render.io import (
 )
 from render.raycast import MeshRaycaster
 from render.renderer import render_image, render_rays
-from render.sampler import BandSampler, ProxyRaycaster
 from render.template_field import freeze
 
 METHODS = ("ours", "naive")
@@ -240,38 +239,6 @@ def save_prior(out: Path, prior: PriorMesh, run: RunDir) -> None:
         rgb = np.stack([shade, shade * (1 - 0.5 * tint), shade * (1 - 0.5 * tint)], axis=-1)
         tiles.append(rgb.reshape(cam.height, cam.width, 3))
     write_image(out / "prior_preview.png", np.concatenate(tiles, axis=1))
-
-
-# ---- the scene of an edit (shared with rendering) -----------------------------------------
-def load_edit_field(edit_dir: Path, device) -> dict:
-    path = Path(edit_dir) / "edit_field.pt"
-    if not path.is_file():
-        raise SineError(
-            f"{path} not found; run `sine edit` first (or it was interrupted: re-run it)"
-        )
-    return load_torch(path)
-
-
-def edited_sampler(
-    editing: EditingField,
-    proxy_vertices,
-    triangles,
-    band: float,
-    samples: tuple[int, int],
-    strength=1.0,
-    extra=None,
-    warped=None,
-) -> BandSampler:
-    """Band sampler (`samples`: band and coarse samples per ray) around F'_dG(proxy), united with
-    `extra` vertices [V, 3] of the same triangles (e.g. the prior mesh) when given; `warped`
-    [V, 3]: F'_dG(proxy) already computed."""
-    if warped is None:
-        warped = warp_vertices(editing.forward_deform, proxy_vertices, strength)
-    verts, tris = warped, triangles
-    if extra is not None:
-        verts = np.concatenate([warped, extra])
-        tris = np.concatenate([triangles, triangles + len(warped)])
-    return BandSampler(ProxyRaycaster((verts, tris), inflate=band), *samples)
 
 
 # ---- training -----------------------------------------------------------------------------
@@ -546,9 +513,7 @@ def write_previews(run: RunDir, scene, folder: Path, n: int, device) -> None:
     """Template | edit side by side for n views spread around the ring (test views first)."""
     if n <= 0:
         return
-    from edit.scene import load_scene
-
-    template = load_scene(run.root, None, device=str(device))
+    template = load_template_scene(run, device)
     frames = run.load_cameras().frames
     for k in np.linspace(0, len(frames), n, endpoint=False).astype(int):
         cam = frames[k]

@@ -347,8 +347,6 @@ def test_eval_reference_render_scores_high(tiny_fitted_run, tmp_path):
 def fake_edit_run(tiny_fitted_run, tmp_path, monkeypatch):
     """A copy of the tiny run with RUN/edits/tall (edit.json view 2), and an editing hook whose
     scene is the template stretched 1.5x along z with red and blue swapped."""
-    import sys
-    import types
 
     from edit.scene import TemplateScene, load_template_scene
 
@@ -372,9 +370,9 @@ def fake_edit_run(tiny_fitted_run, tmp_path, monkeypatch):
         base = load_template_scene(run_dir, device)
         return Tall(**{**vars(base), "name": name})
 
-    hook = types.ModuleType("edit.editing_scene")
-    hook.load_edit_scene = load_edit_scene
-    monkeypatch.setitem(sys.modules, "edit.editing_scene", hook)
+    import edit.scene
+
+    monkeypatch.setattr(edit.scene, "load_edit_scene", load_edit_scene)
     return run
 
 
