@@ -12,12 +12,19 @@ Middlebury ring (`*_par.txt`), a NeuS/IDR folder (`cameras_sphere.npz`) or image
   `ignore_intrinsics` drops them too;
 - `masks/<stem>.png`, `depth/<stem>.npy`: when the input carries them (resized with nearest).
 
+Lenient where it can be: a pose file listing images that do not exist keeps the ones that do
+(a warning in the notes; fewer than 3 is an error); with `ignore_poses` a pose file that cannot
+be used at all is no error (images only, a note); `NNNNN_P.txt` projection files match images
+by their leading number (`NNNNN._c.png`); a JPEG's EXIF orientation is applied to images
+without a camera (phone photos come in upright).
+
 The stage is idempotent: the same source with the same options is skipped unless `force`.
 """
 
 from __future__ import annotations
 
 import hashlib
+import re
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -147,7 +154,7 @@ def ingest_capture(capture: Path, run: RunDir, cfg: IngestConfig | None = None) 
     fmt = detect_format(capture) if cfg.format == "auto" else cfg.format
     if fmt not in READERS:
         raise SineError(f"unknown camera format '{fmt}': use one of {', '.join(FORMATS)}")
-    cap = READERS[fmt](capture, cfg)
+    cap = _read_capture(fmt, capture, cfg)
     if len(cap.views) < MIN_VIEWS:
         raise SineError(
             f"{capture} gives only {len(cap.views)} view(s) ({fmt}); a reconstruction needs at "
@@ -190,7 +197,7 @@ def ingest_capture(capture: Path, run: RunDir, cfg: IngestConfig | None = None) 
                         }
     captures = {
         "source": source,
-        "format": fmt,
+        "format": cap.format,
         "working_width": max(r["width"] for r in records),
         "poses": use_poses,
         "config": config,
@@ -275,6 +282,25 @@ def detect_format(capture: Path) -> str:
     )
 
 
+def _read_capture(fmt: str, capture: Path, cfg: IngestConfig) -> Capture:
+    """The format's reader; with --ignore-poses a pose file it cannot use is no error: the
+    images are read alone (SfM then estimates the intrinsics too)."""
+    try:
+        return READERS[fmt](capture, cfg)
+    except SineError as exc:
+        if not cfg.ignore_poses or fmt in ("images", "video"):
+            raise
+        folder = capture if capture.is_dir() else capture.parent
+        try:
+            cap = _read_images(folder, cfg)
+        except SineError:
+            raise exc from None
+        note = f"the {fmt} cameras could not be used ({exc}); --ignore-poses: images only"
+        print(f"[ingest] {note}")
+        cap.notes.append(note)
+        return cap
+
+
 # ---- format readers -----------------------------------------------------------------------
 def _read_images(capture: Path, cfg: IngestConfig) -> Capture:
     if not capture.is_dir():
@@ -353,11 +379,9 @@ def _read_transforms(capture: Path, cfg: IngestConfig) -> Capture:
             missing.append(frame["file_path"])
         else:
             files[frame["file_path"]] = found
+    notes = _missing_note(path, missing, len(files), f"paths are relative to {base}")
     if missing:
-        raise SineError(
-            f"{path} refers to images that do not exist: {_short_list(missing)} "
-            f"(paths are relative to {base})"
-        )
+        data = {**data, "frames": [f for f in data["frames"] if f["file_path"] in files]}
     sizes = _probe_files(list(files.values()))
     image_sizes = {fp: sizes[p] for fp, p in files.items()}
     cams = cameras_from_transforms(data, image_sizes)
@@ -373,7 +397,7 @@ def _read_transforms(capture: Path, cfg: IngestConfig) -> Capture:
                 setattr(view, attr, p)
         view.depth_scale = depth_scale
         views.append(view)
-    return Capture("transforms", views, has_poses=True)
+    return Capture("transforms", views, has_poses=True, notes=notes)
 
 
 def _read_colmap(capture: Path, cfg: IngestConfig) -> Capture:
@@ -400,14 +424,11 @@ def _read_colmap(capture: Path, cfg: IngestConfig) -> Capture:
             "images/ folder beside or above it)"
         )
     missing = [n for n, _ in cams if not (image_dir / n).is_file()]
-    if missing:
-        raise SineError(
-            f"images of the COLMAP model missing in {image_dir}: {_short_list(missing)}"
-        )
+    cams = [(n, c) for n, c in cams if (image_dir / n).is_file()]
     views = [
         SourceView(Path(n).stem, str(image_dir / n), path=image_dir / n, camera=c) for n, c in cams
     ]
-    notes = [f"COLMAP model {model}"]
+    notes = [f"COLMAP model {model}", *_missing_note(model, missing, len(cams), str(image_dir))]
     unregistered = len(_image_files(image_dir, strict=False)) - len(cams)
     if unregistered > 0:
         notes.append(f"{unregistered} image(s) in {image_dir} have no pose in the model: skipped")
@@ -421,8 +442,7 @@ def _read_middlebury(capture: Path, cfg: IngestConfig) -> Capture:
     rows = read_middlebury_par(pars[0])
     base = pars[0].parent
     missing = [name for name, *_ in rows if not (base / name).is_file()]
-    if missing:
-        raise SineError(f"{pars[0]} lists images missing in {base}: {_short_list(missing)}")
+    rows = [row for row in rows if (base / row[0]).is_file()]
     sizes = _probe_files([base / name for name, *_ in rows])
     views = []
     for name, K, R, t in rows:
@@ -432,6 +452,7 @@ def _read_middlebury(capture: Path, cfg: IngestConfig) -> Capture:
     notes = [f"cameras from {pars[0].name}"] + (
         [f"ignored {', '.join(p.name for p in pars[1:])}"] if len(pars) > 1 else []
     )
+    notes += _missing_note(pars[0], missing, len(rows), str(base))
     return Capture("middlebury", views, has_poses=True, notes=notes)
 
 
@@ -471,6 +492,12 @@ def _read_projections(capture: Path, cfg: IngestConfig) -> Capture:
             f"no projection matrix file (<stem>_P.txt or <stem>.P) for {_short_list(missing)} "
             f"in {folder}: give one per image, or remove the others to ingest images only"
         )
+    shared = [q.name for q, n in Counter(pfiles.values()).items() if n > 1]
+    if shared:
+        raise SineError(
+            f"several images match the same projection file ({_short_list(shared)}) in "
+            f"{folder}: name them so that each image has its own <stem>_P.txt"
+        )
     sizes = _probe_files(files)
     views = []
     for p in files:
@@ -491,6 +518,25 @@ READERS = {
 }
 
 
+def _missing_note(source: Path, missing: list[str], present: int, where: str) -> list[str]:
+    """A warning (printed and kept in captures.json's notes) for images a pose file lists that
+    do not exist: the capture goes on with the ones that do, unless fewer than MIN_VIEWS."""
+    if not missing:
+        return []
+    if present < MIN_VIEWS:
+        raise SineError(
+            f"{source} lists {len(missing) + present} images but only {present} exist "
+            f"({where}; missing: {_short_list(missing)}); a reconstruction needs at least "
+            f"{MIN_VIEWS}: put the images beside it"
+        )
+    note = (
+        f"warning: {len(missing)} image(s) listed in {Path(source).name} do not exist "
+        f"({_short_list(missing)}); using the {present} that do"
+    )
+    print(f"[ingest] {note}")
+    return [note]
+
+
 # ---- writing one view ---------------------------------------------------------------------
 def _ingest_view(
     view: SourceView, size: tuple[int, int], cfg: IngestConfig, run: RunDir, split: str
@@ -498,6 +544,9 @@ def _ingest_view(
     if view.frame is not None:
         rgb = view.frame[..., ::-1].astype(np.float32) / 255.0  # [H, W, 3]
         alpha, digest = None, hashlib.sha256(view.frame.tobytes()).hexdigest()
+    elif view.camera is None and exif_orientation(view.path) != 1:
+        rgb, alpha = _read_oriented(view.path)  # phone photos: upright as they are viewed
+        digest = _sha256(view.path)
     else:
         rgb, alpha = read_image_rgba(view.path)
         digest = _sha256(view.path)
@@ -683,9 +732,18 @@ def _find_colmap_model(root: Path) -> Path | None:
 
 
 def _projection_file(image: Path) -> Path | None:
+    """<stem>_P.txt, <stem>.P (...) beside the image, else the projection file whose number is
+    the image's leading number (images named `00012._c.png` beside `00012_P.txt`)."""
     for cand in (f"{image.stem}_P.txt", f"{image.stem}.P", f"{image.name}.P", f"{image.stem}.p"):
         if (image.parent / cand).is_file():
             return image.parent / cand
+    number = re.match(r"\d+", image.stem)
+    if number is None:
+        return None
+    for p in sorted(image.parent.iterdir()):
+        m = re.fullmatch(r"(\d+)(_P\.txt|\.P|\.p)", p.name)
+        if m and int(m.group(1)) == int(number.group(0)) and p.is_file():
+            return p
     return None
 
 
@@ -741,10 +799,41 @@ def _probe_files(paths: list[Path]) -> dict[Path, tuple[int, int]]:
 
 
 def _probe_sizes(views: list[SourceView]) -> list[tuple[int, int]]:
+    """(width, height) of each view as ingested (EXIF orientation applied without a camera)."""
     sizes = _probe_files([v.path for v in views if v.path is not None])
-    return [
-        sizes[v.path] if v.path is not None else (v.frame.shape[1], v.frame.shape[0]) for v in views
-    ]
+    out = []
+    for v in views:
+        if v.path is None:
+            out.append((v.frame.shape[1], v.frame.shape[0]))
+        elif v.camera is None and exif_orientation(v.path) in (5, 6, 7, 8):  # turned 90 deg
+            out.append(sizes[v.path][::-1])
+        else:
+            out.append(sizes[v.path])
+    return out
+
+
+def exif_orientation(path: Path) -> int:
+    """The EXIF orientation tag of an image (1 = as stored; phone photos: often 6 or 8)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return int(im.getexif().get(0x0112, 1))
+    except Exception:  # noqa: BLE001 - no EXIF, or not readable by PIL: as stored
+        return 1
+
+
+def _read_oriented(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """RGB [H, W, 3] float32 and alpha (or None) with the EXIF orientation applied."""
+    from PIL import Image, ImageOps
+
+    with Image.open(path) as im:
+        im = ImageOps.exif_transpose(im)
+        has_alpha = im.mode in ("RGBA", "LA") or "transparency" in im.info
+        arr = np.asarray(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
+    if has_alpha:
+        return np.ascontiguousarray(arr[..., :3]), arr[..., 3]
+    return arr, None
 
 
 def _check_same_size(views, sizes, capture: Path) -> None:

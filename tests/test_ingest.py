@@ -401,12 +401,106 @@ def test_errors(tmp_path):
     cv2.imwrite(str(masks / "img_000.png"), rect_mask())
     fails(tmp_path / "imgs", "no mask for 3 of 4.*img_001", masks=masks)
     fails(tmp_path / "imgs", "not a folder", masks=tmp_path / "nomasks")
-    # a transforms.json pointing at missing images
+    # a transforms.json pointing at missing images: fewer than 3 left is an error
     make_transforms(tmp_path / "tf", masks=False, depth=False)
     (tmp_path / "tf" / "images" / "v1.png").unlink()
-    fails(tmp_path / "tf", "do not exist.*v1.png")
+    (tmp_path / "tf" / "images" / "v2.png").unlink()
+    fails(tmp_path / "tf", "lists 4 images but only 2 exist.*v1.png, images/v2.png")
     fails(tmp_path / "imgs", "--width", width=4)
     assert not run.captures.exists()
+
+
+# ---- lenient ingestion (issue 14) ---------------------------------------------------------
+def test_pose_files_listing_missing_images_keep_the_ones_present(tmp_path, capsys):
+    cams = ring_cameras(5)
+    mid = tmp_path / "mid"
+    mid.mkdir()
+    for i, cam in enumerate(cams):
+        write_image(mid / cam.name, pattern(i))
+    C.write_middlebury_par(mid / "obj_par.txt", cams)
+    (mid / "v1.png").unlink()
+    (mid / "v3.png").unlink()
+    run = RunDir(tmp_path / "run")
+    summary = ingest_capture(mid, run, IngestConfig(width=32, holdout_every=0))
+    assert summary["views"] == 3 and summary["poses"]
+    assert any("2 image(s) listed in obj_par.txt do not exist (v1.png, v3.png)" in n
+               for n in summary["notes"])  # fmt: skip
+    assert "[ingest] warning: 2 image(s)" in capsys.readouterr().out
+    got = run.load_cameras().by_name()
+    assert sorted(got) == ["v0.png", "v2.png", "v4.png"]
+    for i in (0, 2, 4):
+        assert_camera_close(got[f"v{i}.png"], cams[i].resized(32, 24))
+    # the same with --ignore-poses: no cameras.json, intrinsics of the three kept
+    run2 = RunDir(tmp_path / "run2")
+    summary = ingest_capture(mid, run2, IngestConfig(width=32, ignore_poses=True))
+    assert summary["views"] == 3 and not run2.cameras.exists()
+    assert all("intrinsics" in r for r in run2.load_captures()["images"])
+    # a transforms.json with a missing frame and a COLMAP model with a missing image
+    make_transforms(tmp_path / "tf", masks=False, depth=False)
+    (tmp_path / "tf" / "images" / "v2.png").unlink()
+    summary = ingest_capture(tmp_path / "tf", RunDir(tmp_path / "run3"), IngestConfig(width=32))
+    assert summary["views"] == 3 and "images/v2.png" in " ".join(summary["notes"])
+    col = tmp_path / "col"
+    (col / "images").mkdir(parents=True)
+    for i, cam in enumerate(cams[:4]):
+        write_image(col / "images" / cam.name, pattern(i))
+    C.write_colmap_text(col / "sparse" / "0", cams)  # lists v4.png, absent
+    summary = ingest_capture(col, RunDir(tmp_path / "run4"), IngestConfig(width=32))
+    assert summary["views"] == 4 and "v4.png" in " ".join(summary["notes"])
+
+
+def test_ignore_poses_does_not_need_a_usable_pose_file(tmp_path):
+    mid = image_folder(tmp_path / "mid")
+    (mid / "obj_par.txt").write_text("2\nimg_000.png 1 2 3\n")  # truncated: unusable
+    with pytest.raises(SineError):
+        ingest_capture(mid, RunDir(tmp_path / "run"), IngestConfig(width=32))
+    run = RunDir(tmp_path / "run2")
+    summary = ingest_capture(mid, run, IngestConfig(width=32, ignore_poses=True))
+    assert summary["views"] == 4 and summary["format"] == "images" and not summary["poses"]
+    assert any("middlebury cameras could not be used" in n for n in summary["notes"])
+    assert not any("intrinsics" in r for r in run.load_captures()["images"])
+
+
+def test_projection_files_match_images_by_their_number(tmp_path):
+    """`00012_P.txt` beside `00012._c.png` (a suffix after the number) is that image's camera."""
+    cams = ring_cameras(3)
+    prj = tmp_path / "prj"
+    prj.mkdir()
+    for i, cam in enumerate(cams):
+        write_image(prj / f"{i:05d}._c.png", pattern(i))
+        text = "\n".join(" ".join(repr(float(x)) for x in row) for row in cam.projection)
+        (prj / f"{i:05d}_P.txt").write_text(text)
+    assert detect_format(prj) == "projections"
+    run = RunDir(tmp_path / "run")
+    summary = ingest_capture(prj, run, IngestConfig(width=32, holdout_every=0))
+    assert summary["format"] == "projections" and summary["views"] == 3
+    for cam, got in zip(cams, run.load_cameras().frames, strict=True):
+        assert_camera_close(got, cam.resized(32, 24), atol=1e-6)
+    # two images with one number share a file: ambiguous, an error
+    write_image(prj / "00001._d.png", pattern(5))
+    with pytest.raises(SineError, match="same projection file.*00001_P.txt"):
+        ingest_capture(prj, RunDir(tmp_path / "run2"), IngestConfig(width=32))
+
+
+def test_jpeg_exif_orientation_is_applied(tmp_path):
+    """A phone photo stored landscape with orientation 6 (turn 90 degrees clockwise to view) is
+    ingested upright: portrait, the stored top-left corner at the top right."""
+    from PIL import Image
+
+    folder = tmp_path / "phone"
+    folder.mkdir()
+    for i in range(3):
+        stored = np.zeros((40, 60, 3), np.uint8)  # landscape as stored: H 40, W 60
+        stored[:10, :10] = (255, 0, 0)  # red block at the stored top-left
+        exif = Image.Exif()
+        exif[0x0112] = 6
+        Image.fromarray(stored).save(folder / f"p{i}.jpg", exif=exif, quality=95)
+    run = RunDir(tmp_path / "run")
+    summary = ingest_capture(folder, run, IngestConfig(width=400))
+    assert summary["working_size"] == "40x60" and summary["source_size"] == "40x60"
+    image = read_image(run.image_path("p0.png"))
+    assert image.shape == (60, 40, 3)
+    assert image[2:8, 32:38, 0].mean() > 0.8 and image[2:8, 2:8, 0].mean() < 0.2
 
 
 def test_cli_help_lists_every_option(capsys):
