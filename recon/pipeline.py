@@ -182,11 +182,6 @@ def stage_options(cfg: ReconConfig, stage: str, ignore_poses: bool = False) -> d
     return options
 
 
-def views_as_cameras(views: list[dict]) -> list[Camera]:
-    """Stand-in cameras carrying only the names of the views (to read their masks)."""
-    return [Camera(r["width"], r["height"], 1.0, 1.0, 0.0, 0.0, name=r["name"]) for r in views]
-
-
 def sfm_too_few(registered: int, total: int, cfg: ReconConfig) -> str:
     return (
         f"structure from motion registered only {registered} of {total} views "
@@ -334,7 +329,8 @@ class Pipeline:
         if fallback and mode == "auto":
             from recon.selfcheck import looks_like_turntable
 
-            if not looks_like_turntable(self.masks_for(views_as_cameras(views))):
+            masks = [read_mask(self.run.mask_path(r["name"])) for r in views]
+            if not looks_like_turntable(masks):
                 print(f"[recon] poses: {fallback}; the views do not look like a turntable")
                 fallback = None
         if fallback is None:

@@ -193,3 +193,53 @@ def test_recon_turntable_on_poses_every_view(toycar, tmp_path):
     got, _ = _relative_geometry(found)
     true, _ = _relative_geometry([truth[c.name] for c in found])
     assert np.abs(got - true).max() < 2.0
+
+
+def test_auto_replaces_a_wrong_but_confident_sfm_model(toycar, tmp_path, monkeypatch):
+    """SfM stands in for the global mapper's failure: every view 'registered' at 0.4 px, every
+    other camera turned 90 degrees around the object. `--turntable auto` sees the self-check
+    fail on an ordered turntable sequence and poses the views with the turntable model."""
+    from types import SimpleNamespace
+
+    from recon.ingest import IngestConfig
+    from recon.pipeline import Pipeline, ReconConfig, run_recon
+    from recon.rundir import RunDir
+
+    cap, cams, _ = toycar
+    a = np.radians(90.0)
+    turn = np.eye(4)
+    turn[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    wrong = [
+        c.replace(camera_to_world=turn @ c.camera_to_world) if i % 2 else c
+        for i, c in enumerate(cams)
+    ]
+
+    def confident_sfm(self, views, partial=False):
+        info = {
+            "pose_source": "sfm (global)",
+            "registered_views": len(wrong),
+            "total_views": len(views),
+            "unregistered": [],
+            "mean_reprojection_error_px": 0.4,
+        }
+        return info, wrong, SimpleNamespace(models=[("global", wrong)])
+
+    monkeypatch.setattr(Pipeline, "sfm_poses", confident_sfm)
+    run = RunDir(tmp_path / "run")
+    cfg = ReconConfig(
+        turntable_step=30.0,
+        turntable_iterations=60,
+        target_triangles=2000,
+        tsdf_voxel_size=1 / 64,
+        hull_resolution=48,
+    )
+    report = run_recon(cap, run, cfg, IngestConfig(width=96, ignore_poses=True))
+    assert report["sfm_self_check"]["verdict"] == "poor"
+    assert report["pose_source"] == "turntable"
+    assert report["turntable_reason"] == "the SfM self-check failed"
+    assert report["verdict"] == "ok", report["verdict_reasons"]
+    truth = {c.name: c for c in cams}
+    found = run.load_cameras().frames
+    got, _ = _relative_geometry(found)
+    true, _ = _relative_geometry([truth[c.name] for c in found])
+    assert np.abs(got - true).max() < 2.0
