@@ -47,11 +47,6 @@ VARIANTS = {
 }
 
 
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    mse = float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
-    return 10.0 * np.log10(1.0 / max(mse, 1e-12))
-
-
 def prepare_object(name: str, work: Path, size: int, views: int, fit_iterations: int | None):
     from recon.fit import FitConfig, fit_template
     from recon.ingest import IngestConfig
@@ -99,6 +94,7 @@ def score(run, syn: Path, scene, template, views: list[int]) -> tuple[dict, list
     from skimage.metrics import structural_similarity
 
     from render.io import read_image, read_mask
+    from render.metrics import psnr
 
     frames = run.load_cameras().frames
     rows, per = [], {"psnr": [], "psnr_image": [], "ssim": [], "iou": [], "unedited": []}

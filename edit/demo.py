@@ -246,7 +246,7 @@ def silhouette_iou(opacity: np.ndarray, mask: np.ndarray) -> float:
 
 
 def object_psnr(pred: np.ndarray, gt: np.ndarray, pred_alpha, gt_mask) -> float:
-    from render.evaluation import psnr
+    from render.metrics import psnr
 
     sel = (pred_alpha > 0.5) | (gt_mask > 0.5)
     return psnr(pred[sel], gt[sel])
@@ -361,10 +361,10 @@ def run_demo(cfg: DemoConfig) -> dict:
     from edit.targets import before_after, write_rgba
     from recon.fit import fit_template
     from recon.pipeline import run_recon
-    from recon.report import mask_iou
     from recon.rundir import RunDir
     from recon.synth import synthesize
     from render.io import read_image, write_image
+    from render.metrics import mask_iou
 
     paint_part = check_options(cfg)
     cfg = resolved(cfg)

@@ -48,7 +48,7 @@ from edit.editing_field import EditingField, combine, edited_query, warp_vertice
 from edit.editing_scene import edited_sampler, scene_from_folder
 from edit.shape_prior import PriorMesh, build_prior_mesh
 from edit.template_scene import load_template_scene
-from recon.fit import load_fitted, make_sampler, psnr
+from recon.fit import load_fitted, make_sampler
 from recon.rundir import RunDir
 from recon.training import Trainer, exponential_decay
 from render.configs import option, to_dict, validate
@@ -62,6 +62,7 @@ from render.io import (
     write_json,
     write_mask,
 )
+from render.metrics import psnr
 from render.raycast import MeshRaycaster
 from render.renderer import render_image, render_rays
 from render.template_field import freeze

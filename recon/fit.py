@@ -17,7 +17,6 @@ RUN/template.partial/ and, once finished, moves that to RUN/template/:
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +32,7 @@ from render.device import pick_device, torch_threads
 from render.errors import SineError
 from render.hashgrid import HashGridConfig
 from render.io import load_torch, read_image, read_mask, save_torch, write_image, write_json
+from render.metrics import psnr, psnr_of_mse  # noqa: F401  (psnr: used by importers)
 from render.renderer import render_image, render_rays
 from render.sampler import BandSampler, ProxyRaycaster, RayHits, UniformSampler
 from render.template_field import Background, TemplateField, TemplateFieldConfig
@@ -215,16 +215,6 @@ def load_template(run_dir, device: torch.device | None = None) -> tuple[Template
 
 
 # ---- metrics ------------------------------------------------------------------------------
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    mse = float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
-    return psnr_of_mse(mse)
-
-
-def psnr_of_mse(mse: float) -> float:
-    """PSNR in dB of a mean squared error of images in [0, 1]."""
-    return 10.0 * math.log10(1.0 / max(mse, 1e-12))
-
-
 def evaluate(
     field, background, sampler, views, device, chunk=16384, preview_dir=None, n_previews=0
 ):

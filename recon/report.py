@@ -16,7 +16,9 @@ import numpy as np
 from tqdm import tqdm
 
 from recon.rundir import RunDir
+from recon.selfcheck import CheckThresholds, check_proxy
 from render.io import contact_sheet, read_image, read_mask, write_image, write_json
+from render.metrics import mask_iou
 from render.raycast import MeshRaycaster
 
 STAGE_KEYS_SKIP = ("done", "seconds", "auto")
@@ -42,12 +44,6 @@ def outline_sheet(images, masks, silhouettes, columns: int = 6, width: int = 200
             cv2.drawContours(tile, contours, -1, colour, 1)
         tiles.append(tile)
     return contact_sheet(tiles, columns, fill=0.0)
-
-
-def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
-    """Intersection over union of two boolean masks [H, W] (1.0 when both are empty)."""
-    union = np.logical_or(a, b).sum()
-    return float(np.logical_and(a, b).sum() / union) if union else 1.0
 
 
 def flat_report(state: dict) -> dict:
@@ -86,8 +82,6 @@ def write_report(
 ) -> dict:
     """Computes silhouette IoU, writes the contact sheet and recon_report.json (with the
     verdict of every self-check); returns IoU stats and the proxy's self-check."""
-    from recon.selfcheck import CheckThresholds, check_proxy
-
     cams = run.load_cameras().frames
     masks = [read_mask(run.mask_path(c.name)) for c in cams]
     sils = proxy_silhouettes(run, cams)

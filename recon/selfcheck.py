@@ -25,10 +25,10 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from recon.report import mask_iou
 from recon.visual_hull import carve, hull_bounds, hull_mesh
 from render.cameras import Camera
 from render.errors import SineError
+from render.metrics import mask_iou
 
 
 @dataclass

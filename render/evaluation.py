@@ -22,6 +22,7 @@ import numpy as np
 from render.cameras import Camera, CameraSet, load_cameras
 from render.errors import SineError
 from render.io import read_image, read_mask
+from render.metrics import psnr
 
 
 @dataclass
@@ -97,12 +98,6 @@ def load_gt_views(
     if not views:
         raise SineError(f"{gt_dir} has no {split} views")
     return views
-
-
-def psnr(pred: np.ndarray, gt: np.ndarray) -> float:
-    """PSNR in dB of images or pixel sets with values in [0, 1]."""
-    mse = float(np.mean((np.asarray(pred, np.float64) - np.asarray(gt, np.float64)) ** 2))
-    return float(10.0 * np.log10(1.0 / max(mse, 1e-12)))
 
 
 def image_metrics(
