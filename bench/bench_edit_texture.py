@@ -279,6 +279,14 @@ def main() -> int:
         help="skip `sine features`: masks from the region lifted onto the proxy",
     )
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
+    ap.add_argument(
+        "--set",
+        nargs="+",
+        default=[],
+        metavar="KEY=VALUE",
+        help="texture-edit options for every method (e.g. w_cls=1e-3); VALUE is read as JSON",
+    )
+    ap.add_argument("--tag", default="", help="suffix of the edits' names (variants side by side)")
     ap.add_argument("--memory", type=Path, help="measure one step's peak memory on this RUN")
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512], help="--memory sizes")
     args = ap.parse_args()
@@ -317,19 +325,21 @@ def main() -> int:
         region = painted_region(syn, cam, work / "region.png")
         sheets = None
         for method in args.methods:
-            cfg = dataclasses.replace(
-                TextureEditConfig(previews=0, threads=args.threads), **VARIANTS[method]
-            )
+            options = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in args.set)}
+            cfg = TextureEditConfig(previews=0, threads=args.threads, **options)
+            cfg = dataclasses.replace(cfg, **VARIANTS[method])
             if args.iterations:
                 cfg.iterations = args.iterations
             t1 = time.perf_counter()
-            m = run_texture_edit(run.root, k, target, method, cfg, region=region, progress=False)
+            name = method + args.tag
+            m = run_texture_edit(run.root, k, target, name, cfg, region=region, progress=False)
             seconds = m.get("total_seconds", time.perf_counter() - t1)
-            scene = load_scene(run.root, edit=method)
+            scene = load_scene(run.root, edit=name)
             metrics, rows = score(run, syn, scene, template, views)
             case = {
                 "object": obj,
                 "method": method,
+                "options": options,
                 **metrics,
                 "seconds": float(seconds),
                 "edit_view": k,
@@ -347,9 +357,9 @@ def main() -> int:
             grid = np.concatenate(
                 [np.concatenate(sheets[i] + [rows[i][2]], axis=1) for i in picked], axis=0
             )
-            write_image(args.out / f"{obj}_sheet.png", grid)
+            write_image(args.out / f"{obj}{args.tag}_sheet.png", grid)
         write_json(
-            args.out / "results.json",
+            args.out / f"results{args.tag}.json",
             {"cases": cases, "columns": ["template", *args.methods, "ground truth"]},
         )
 

@@ -84,10 +84,10 @@ def run(args: argparse.Namespace) -> int:
 
     if args.mode == "texture":
         return run_texture(args)
-    if args.target is None:
-        raise SineError("--target is required (the edited image of view K)")
     if args.reference is not None:
         raise SineError("--reference is for --mode texture")
+    if args.target is None:
+        raise SineError("--target is required (the edited image of view K)")
     cfg = from_args(GeometryEditConfig, args)
     metrics = run_geometry_edit(
         args.run,

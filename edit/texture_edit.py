@@ -31,9 +31,17 @@ F_dT re-rendered chunk by chunk with a graph):
   (`edit.texture_loss`; I_t the target, or the reference photo) and L_reg on the pixels outside
   the edited part. The edited part of a view comes from the semantic masks (K-means of the DINO
   feature field, as `sine masks`) when RUN/features exists, else from the painted region lifted
-  onto the proxy: proxy vertices visible in view K are inside or outside the region, and a
-  pixel whose surface point is nearest to a vertex seen outside the region (or the background)
-  keeps the template; vertices hidden from view K are left free (`mask_source`).
+  onto the surface (`edit.texture_views.LiftedRegion`): view K's object pixels become surface
+  points (rendered depth) inside or outside the region; a pixel of another view may change
+  when its surface point is near one seen inside the region; the rest, surface view K never saw
+  included, keeps the template (`mask_source`; run `sine features` to reach the part's unseen
+  sides). The 3D side of L_reg (the paper's holds F_dG to zero at background points; here F_dT):
+  w_reg_field ||m'(x)||^2 (weighted by the samples' rendering weights) at the samples of the
+  step's unedited pixels, so F_dT's hash table and MLP cannot leak the edit's colour over the
+  whole object. Beyond the paper (as geometry edits): F_dT is multiplied by a 3D gate
+  (`edit.edit_gate.EditGate`) that is 1 near the samples of view K's region and of every
+  training camera's editable pixels and 0 farther than `gate_outer`: there the edit is exactly
+  the template (the compositor's residual is gated by I_m too).
 
 `--no-compositor` (a baseline): I = clamp(I_o + I_m), i.e. m' added to c' inside volume
 rendering (`edit.editing_field.combine`), same losses. `--method naive` (a baseline): the
@@ -56,15 +64,16 @@ from edit.compositor import HALO, Compositor, composite_hwc
 from edit.deferred import DeferredImage, deferred_backward, image_tiles
 from edit.edit_inputs import difference_region, read_region, read_target
 from edit.editing_field import EditingField
+from edit.geometry_edit import input_digests
 from edit.geometry_losses import photometric
 from edit.texture_views import (
+    LiftedRegion,
     ViewSamples,
+    box_pixels,
     jittered_camera,
-    labels_to_editable,
     render_modification,
     sample_view,
     scaled_camera,
-    vertex_labels,
 )
 from recon.fit import load_fitted, make_sampler, psnr
 from recon.rundir import RunDir
@@ -72,7 +81,14 @@ from recon.training import Trainer
 from render.configs import option, to_dict, validate
 from render.device import pick_device, torch_threads
 from render.errors import SineError
-from render.io import read_image_rgba, save_torch, write_image, write_json, write_mask
+from render.io import (
+    file_sha256,
+    read_image_rgba,
+    save_torch,
+    write_image,
+    write_json,
+    write_mask,
+)
 from render.renderer import render_rays
 from render.template_field import freeze
 
@@ -91,8 +107,8 @@ class TextureEditConfig:
         True, "blend I_o and I_m with the 2D compositor (--no-compositor: I_o + I_m, a baseline)"
     )
     iterations: int = option(600, "training steps", low=1)
-    lr_texture_grid: float = option(1e-2, "Adam learning rate of F_dT's hash table", low=1e-12)
-    lr_texture_mlp: float = option(1e-3, "Adam learning rate of F_dT's MLP", low=1e-12)
+    lr_grid: float = option(3e-2, "Adam learning rate of F_dT's hash table", low=1e-12)
+    lr_mlp: float = option(1e-3, "Adam learning rate of F_dT's MLP", low=1e-12)
     lr_compositor: float = option(1e-3, "Adam learning rate of the compositor", low=1e-12)
     lr_naive: float = option(1e-3, "naive baseline: learning rate of the colour MLP", low=1e-12)
     lr_final_factor: float = option(
@@ -100,9 +116,21 @@ class TextureEditConfig:
     )
     w_photometric: float = option(1.0, "weight of the photometric term on view K's region", low=0)
     w_reg: float = option(1.0, "weight of the regularisation L_reg outside the edited part", low=0)
-    w_cls: float = option(0.02, "weight of L_tex's CLS term (appearance of the target)", low=0)
+    gate: bool = option(
+        True,
+        "multiply F_dT by a 3D gate: 1 near the surface the views' masks let change, 0 beyond "
+        "--gate-outer (the rest of the object renders exactly as the template)",
+    )
+    gate_inner: float = option(0.03, "gate: 1 within this distance (run units)", low=0)
+    gate_outer: float = option(0.08, "gate: 0 beyond this distance (run units)", low=0)
+    gate_resolution: int = option(128, "gate: voxels per side over [-1, 1]^3", low=2)
+    w_reg_field: float = option(
+        1.0, "weight of |F_dT|^2 at surface points of unedited pixels (3D side of L_reg)", low=0
+    )
+    reg_points: int = option(4096, "samples of that term per step", low=1)
+    w_cls: float = option(2e-4, "weight of L_tex's CLS term (appearance of the target)", low=0)
     w_structure: float = option(
-        0.02, "weight of L_tex's self-similarity term (structure of the template)", low=0
+        2e-4, "weight of L_tex's self-similarity term (structure of the template)", low=0
     )
     tex_views: int = option(1, "views around the object with L_tex and L_reg per step", low=0)
     tex_size: int = option(128, "longer side (px) of the L_tex views' renders", low=16)
@@ -111,23 +139,25 @@ class TextureEditConfig:
     )
     jitter_copies: int = option(2, "jittered copies of each training camera", low=1)
     patch_size: int = option(
-        96, "side (px) of the crop of view K per step (0: the whole view)", low=0
+        64, "side (px) of the crop of view K per step (0: the whole view)", low=0
     )
     coarse_to_fine: float = option(
         0.5, "fraction of training after which all of F_dT's hash levels are on", low=0, high=1
     )
     min_weight: float = option(
-        1e-3, "samples of lower volume-rendering weight are skipped by F_dT", low=0, high=1
+        1e-2, "samples of lower volume-rendering weight are skipped by F_dT", low=0, high=1
     )
     mask_source: str = option(
         "auto",
         "which pixels of other views may change: semantic masks from RUN/features (features), "
-        "the painted region lifted onto the proxy (proxy), or features when present (auto)",
-        choices=["auto", "features", "proxy"],
+        "the painted region lifted onto the surface (lifted), or features when present (auto)",
+        choices=["auto", "features", "lifted"],
     )
     region_dilate: int = option(6, "pixels the automatic editable region is grown by", low=0)
-    visibility_tol: float = option(
-        0.02, "depth tolerance (run units) of visible proxy vertices", low=0
+    lift_tol: float = option(
+        0.02,
+        "lifted masks: distance (run units) within which a surface point counts as seen by view K",
+        low=0,
     )
     batch_rays: int = option(1024, "naive baseline: rays of view K per step", low=1)
     chunk: int = option(
@@ -246,7 +276,7 @@ class ViewBank:
         return self.cache[j]
 
 
-def editable_masker(run: RunDir, setup: TextureSetup, cfg, vertices, triangles, device):
+def editable_masker(run: RunDir, setup: TextureSetup, cfg, device):
     """view -> [P] bool pixels that may change (see the module doc); and the source's name."""
     has_features = (run.features / "field.pt").is_file()
     if cfg.mask_source == "features" and not has_features:
@@ -271,12 +301,7 @@ def editable_masker(run: RunDir, setup: TextureSetup, cfg, vertices, triangles, 
             return torch.from_numpy(editable.reshape(-1)).to(device)
 
         return semantic, "features"
-    labels = vertex_labels(setup.camera, vertices, triangles, setup.region, cfg.visibility_tol)
-
-    def lifted(view: ViewSamples) -> torch.Tensor:
-        return labels_to_editable(view, vertices, labels)
-
-    return lifted, "proxy"
+    return LiftedRegion.from_view(setup.view, setup.region, cfg.lift_tol).editable, "lifted"
 
 
 # ---- training -----------------------------------------------------------------------------
@@ -314,12 +339,15 @@ def run_texture_edit(
 
 def _edit(run, out, view, target, region, reference, cfg, device, force, progress, stop_at):
     t_start = time.perf_counter()
+    digests = input_digests(target, None, region)
+    if reference is not None and not Path(reference).is_file():
+        raise SineError(f"reference image {reference} does not exist")
     settings = {
         "mode": "texture",
         "view": view,
-        "target": None if target is None else str(target),
-        "region": None if region is None else str(region),
+        **{k: v for k, v in digests.items() if not k.startswith("mask")},
         "reference": None if reference is None else str(reference),
+        "reference_sha256": None if reference is None else file_sha256(reference),
         **to_dict(cfg),
     }
     trainer = Trainer(
@@ -335,7 +363,7 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
         force=force,
         progress=progress,
         manual_backward=cfg.method == "ours",
-        advice="lower learning rates (--lr-texture-grid, --lr-compositor, --lr-naive)",
+        advice="lower learning rates (--lr-grid, --lr-compositor, --lr-naive)",
     )
     done = trainer.finished()
     if done is not None:
@@ -464,8 +492,8 @@ def _ours(run, cfg, trainer, template, sampler, background, setup: TextureSetup,
     texture = editing.texture
     compositor = Compositor().to(device) if cfg.compositor else None
     groups = [
-        {"params": [texture.grid.table], "lr": cfg.lr_texture_grid, "eps": 1e-15, "name": "grid"},
-        {"params": list(texture.mlp.parameters()), "lr": cfg.lr_texture_mlp, "name": "mlp"},
+        {"params": [texture.grid.table], "lr": cfg.lr_grid, "eps": 1e-15, "name": "grid"},
+        {"params": list(texture.mlp.parameters()), "lr": cfg.lr_mlp, "name": "mlp"},
     ]
     state = {"editing": editing}
     if compositor is not None:
@@ -483,22 +511,24 @@ def _ours(run, cfg, trainer, template, sampler, background, setup: TextureSetup,
         dino.requires_grad_(False)
         style = torch.from_numpy(setup.style_image).permute(2, 0, 1).to(device)
         tex_loss = TextureLoss(dino, style, cfg.w_cls, cfg.w_structure)
-    vertices, triangles = sampler.raycaster.vertices, sampler.raycaster.triangles
-    masker, mask_source = (None, "none")
-    if use_tex:
-        masker, mask_source = editable_masker(run, setup, cfg, vertices, triangles, device)
+    masker, mask_source = editable_masker(run, setup, cfg, device)
 
     def make_view(camera) -> ViewSamples:
         view = sample_view(camera, template, sampler, background, cfg.min_weight, device=device)
         view.editable = masker(view)
-        image = view.template_rgb.reshape(*view.size, 3).clamp(0, 1).permute(2, 0, 1)[None]
-        view.template_sim = tex_loss.template_similarity(image)
+        if tex_loss is not None:
+            image = view.template_rgb.reshape(*view.size, 3).clamp(0, 1).permute(2, 0, 1)[None]
+            view.template_sim = tex_loss.template_similarity(image)
         return view
 
     train = [c for c in run.load_cameras().frames if c.split == "train"] or list(
         run.load_cameras().frames
     )
     bank = ViewBank(train, cfg.jitter_copies, cfg.jitter_deg, cfg.tex_size, cfg.seed, make_view)
+    if cfg.gate:  # F_dT is zero away from the edited part as the views' masks see it
+        views = [setup.view] + [bank[j] for j in range(len(train))]
+        points = torch.cat([v.points[v.editable[v.pixel]] for v in views]).cpu().numpy()
+        editing.gate.set_from_points(points, cfg.gate_inner, cfg.gate_outer, cfg.gate_resolution)
 
     k_view = setup.view
     h_k, w_k = k_view.size
@@ -525,6 +555,16 @@ def _ours(run, cfg, trainer, template, sampler, background, setup: TextureSetup,
         return photometric(pred[mask], goal[mask]) if mask.any() else 0 * pred.sum()
 
     tile = cfg.tile + cfg.tile % 2
+
+    def unedited_samples(views: list[ViewSamples]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Up to `reg_points` kept samples (points [M, 3], weights [M]) of the views' pixels
+        that must not change."""
+        points = torch.cat([v.points[~v.editable[v.pixel]] for v in views])
+        weights = torch.cat([v.weights[~v.editable[v.pixel]] for v in views])
+        if len(points) > cfg.reg_points:
+            pick = torch.randperm(len(points), generator=gen)[: cfg.reg_points].to(device)
+            points, weights = points[pick], weights[pick]
+        return points, weights
 
     def step(i: int) -> dict[str, torch.Tensor]:
         texture.set_progress(i / max(1.0, cfg.coarse_to_fine * cfg.iterations))
@@ -556,6 +596,13 @@ def _ours(run, cfg, trainer, template, sampler, background, setup: TextureSetup,
 
         images = [edited_image(v, texture, compositor, tile, cfg.chunk) for v in views]
         _, terms = deferred_backward(images, loss_fn)
+        if cfg.w_reg_field > 0:  # F_dT itself is zero where unedited pixels look
+            points, weights = unedited_samples(views)
+            if len(points):
+                m2 = texture(points).pow(2).sum(-1)
+                reg_field = cfg.w_reg_field * (weights * m2).sum() / weights.sum()
+                reg_field.backward()
+                terms["reg_field"] = reg_field
         return {k: v.detach() for k, v in terms.items()}
 
     return editing, compositor, step, mask_source
@@ -565,16 +612,24 @@ def edited_image(
     view: ViewSamples, texture, compositor, tile: int, chunk: int | None = 32768
 ) -> DeferredImage:
     """The edited image I of a view ({"rgb": [h, w, 3]}) in tiles for `deferred_backward`:
-    each tile's I_m from F_dT on the kept samples (`chunk` samples at a time), then the
-    compositor (with a halo of HALO px)."""
+    I_m of the whole view is computed once without a graph (`chunk` samples at a time); each
+    tile passes its part of it (with a halo of HALO px) through the compositor, and F_dT is
+    queried again, with a graph, only when the tile back-propagates."""
+    h, w = view.size
+    known = None
+    if chunk is not None:
+        with torch.no_grad():
+            known = render_modification(view, texture, chunk)
 
     def render(y0, y1, x0, x1):
         part = view.crop(y0, y1, x0, x1)
         size = (y1 - y0, x1 - x0, 3)
-        mod = render_modification(part, texture, chunk).reshape(size)
+        part_known = None
+        if known is not None:
+            part_known = known[box_pixels(w, y0, y1, x0, x1, known.device)]
+        mod = render_modification(part, texture, chunk, part_known).reshape(size)
         return {"rgb": composite_hwc(compositor, part.template_rgb.reshape(size), mod)}
 
-    h, w = view.size
     return image_tiles(render, h, w, tile, HALO if compositor is not None else 0)
 
 

@@ -9,9 +9,10 @@ Then the modification image of any range of pixels is
     I_m(p) = sum over its samples s of w_s * m'(x_s)          (`render_modification`)
 
 one F_dT query per kept sample and no template query at all, `chunk` samples at a time in both
-the forward and the backward pass (so its memory does not grow with the image). `jittered_camera` perturbs a pose for L_tex's augmentation, and
-`vertex_labels` / `labels_to_editable` give the proxy-lifted editable mask (when the run has no
-feature field for semantic masks).
+the forward and the backward pass (so its memory does not grow with the image).
+`jittered_camera` perturbs a pose for L_tex's augmentation, and `LiftedRegion` gives the editable
+pixels of any view from the painted region lifted onto the surface (when the run has no feature
+field for semantic masks).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ class ViewSamples:
     template_rgb: torch.Tensor  # [P, 3] I_o over the background
     opacity: torch.Tensor  # [P]
     depth: torch.Tensor  # [P] expected ray distance (0 where nothing is hit)
+    surface: torch.Tensor  # [P, 3] the expected surface point o + depth * d
     points: torch.Tensor  # [S, 3]
     weights: torch.Tensor  # [S]
     pixel: torch.Tensor  # [S] int64, the pixel of each sample (sorted)
@@ -66,6 +68,7 @@ class ViewSamples:
             template_rgb=self.template_rgb[pixels],
             opacity=self.opacity[pixels],
             depth=self.depth[pixels],
+            surface=self.surface[pixels],
             points=self.points[ids],
             weights=self.weights[ids],
             pixel=torch.repeat_interleave(torch.arange(len(pixels), device=counts.device), counts),
@@ -77,10 +80,8 @@ class ViewSamples:
 
     def crop(self, y0: int, y1: int, x0: int, x1: int) -> ViewSamples:
         """The pixels of rows y0..y1-1 and columns x0..x1-1 of the view's image."""
-        w = self.size[1]
-        rows = torch.arange(y0, y1, device=self.offsets.device)[:, None] * w
-        cols = torch.arange(x0, x1, device=self.offsets.device)[None, :]
-        return self.subset((rows + cols).reshape(-1), (y1 - y0, x1 - x0))
+        pixels = box_pixels(self.size[1], y0, y1, x0, x1, self.offsets.device)
+        return self.subset(pixels, (y1 - y0, x1 - x0))
 
 
 @torch.no_grad()
@@ -131,6 +132,7 @@ def sample_view(
         template_rgb=rgb,
         opacity=opacity,
         depth=depth,
+        surface=o_all + d_all * depth[:, None],
         points=torch.cat(points) if points else empty,
         weights=torch.cat(weights) if weights else empty[:, 0],
         pixel=torch.repeat_interleave(torch.arange(n, device=device), counts),
@@ -140,14 +142,17 @@ def sample_view(
 
 class _ChunkedModification(torch.autograd.Function):
     """I_m of a whole view with the memory of `chunk` samples, in both directions: the forward
-    pass queries F_dT chunk by chunk without a graph; the backward pass re-queries each chunk
-    with a graph and back-propagates d loss / d m'(x_s) = w_s * d loss / d I_m(pixel of s) into
-    F_dT's parameters (a chunked recomputation, as in gradient checkpointing). `anchor` is one
-    of F_dT's parameters: it only makes autograd call `backward` (its gradient here is zero)."""
+    pass queries F_dT chunk by chunk without a graph (or returns `known`, the same values
+    computed before); the backward pass re-queries each chunk with a graph and back-propagates
+    d loss / d m'(x_s) = w_s * d loss / d I_m(pixel of s) into F_dT's parameters (a chunked
+    recomputation, as in gradient checkpointing). `anchor` is one of F_dT's parameters: it only
+    makes autograd call `backward` (its gradient here is zero)."""
 
     @staticmethod
-    def forward(ctx, anchor, view, texture, chunk):
+    def forward(ctx, anchor, view, texture, chunk, known):
         ctx.view, ctx.texture, ctx.chunk = view, texture, chunk
+        if known is not None:
+            return known.clone()
         out = view.template_rgb.new_zeros(view.n_pixels, 3)
         for s0 in range(0, view.points.shape[0], chunk):
             s1 = s0 + chunk
@@ -164,21 +169,31 @@ class _ChunkedModification(torch.autograd.Function):
                 m = texture(view.points[s0:s1])
                 torch.autograd.backward(m, grad[view.pixel[s0:s1]] * view.weights[s0:s1, None])
         anchor_grad = texture.mlp[-1].bias.new_zeros(texture.mlp[-1].bias.shape)
-        return anchor_grad, None, None, None
+        return anchor_grad, None, None, None, None
 
 
-def render_modification(view: ViewSamples, texture, chunk: int | None = 32768) -> torch.Tensor:
+def render_modification(
+    view: ViewSamples, texture, chunk: int | None = 32768, known: torch.Tensor | None = None
+) -> torch.Tensor:
     """I_m of every pixel of the view [P, 3] = per pixel sum of w_s F_dT(x_s).
 
     With `chunk`, at most that many samples are queried at once, with or without a graph
-    (`_ChunkedModification`); None: one plain autograd graph over every sample (the reference)."""
+    (`_ChunkedModification`; `known` [P, 3]: I_m already computed with the same F_dT, so the
+    forward pass costs nothing and only the backward pass queries F_dT). None: one plain
+    autograd graph over every sample (the reference)."""
     if chunk is not None:
-        return _ChunkedModification.apply(texture.mlp[-1].bias, view, texture, chunk)
+        return _ChunkedModification.apply(texture.mlp[-1].bias, view, texture, chunk, known)
     out = view.template_rgb.new_zeros(view.n_pixels, 3)
     if view.points.shape[0] == 0:
         return out
     m = texture(view.points) * view.weights[:, None]  # [S, 3]
     return out.index_add(0, view.pixel, m)
+
+
+def box_pixels(width: int, y0: int, y1: int, x0: int, x1: int, device=None) -> torch.Tensor:
+    """Row-major pixel indices [(y1 - y0) * (x1 - x0)] of a box of an image `width` wide."""
+    rows = torch.arange(y0, y1, device=device)[:, None] * width
+    return (rows + torch.arange(x0, x1, device=device)[None, :]).reshape(-1)
 
 
 def jittered_camera(camera, degrees: float, rng: np.random.Generator):
@@ -204,46 +219,44 @@ def scaled_camera(camera, longer_side: int):
     return camera if (w, h) == (camera.width, camera.height) else camera.resized(w, h)
 
 
-# ---- the proxy-lifted editable mask (without a feature field) ---------------------------------
-INSIDE, OUTSIDE, UNSEEN = 1, 0, -1
+# ---- the region lifted onto the surface (without a feature field) ----------------------------
+def surface_points(view: ViewSamples, min_opacity: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """(points [M, 3], pixel indices [M]) of the view's object pixels (opacity >= min_opacity):
+    each ray's expected surface point."""
+    obj = np.nonzero((view.opacity >= min_opacity).cpu().numpy())[0]
+    return view.surface.cpu().numpy()[obj], obj
 
 
-def vertex_labels(
-    camera, vertices: np.ndarray, triangles: np.ndarray, region: np.ndarray, tol: float
-) -> np.ndarray:
-    """Per proxy vertex [V] int8: INSIDE (visible in the editing view, in the painted region),
-    OUTSIDE (visible there, outside the region) or UNSEEN (hidden from the editing view)."""
-    from render.raycast import MeshRaycaster
+@dataclass
+class LiftedRegion:
+    """The painted region of the editing view lifted onto the surface: its object pixels' surface
+    points, each inside or outside the region. Another view's pixel may change when its surface
+    point lies within `tol` of a lifted point inside the region; surface the editing view did not
+    see keeps the template, as does the background (conservative: semantic masks from a feature
+    field are what carry an edit to the part's unseen sides)."""
 
-    depth = MeshRaycaster((vertices, triangles)).depth(camera)  # [H, W] camera z, 0 = miss
-    uv, z = camera.project(vertices)
-    h, w = depth.shape
-    col = np.floor(uv[:, 0]).astype(np.int64)
-    row = np.floor(uv[:, 1]).astype(np.int64)
-    inside_image = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
-    labels = np.full(len(vertices), UNSEEN, np.int8)
-    c, r = col[inside_image], row[inside_image]
-    surface = depth[r, c]
-    seen = (surface > 0) & (z[inside_image] <= surface + tol)
-    ids = np.nonzero(inside_image)[0][seen]
-    labels[ids] = np.where(region[r[seen], c[seen]], INSIDE, OUTSIDE)
-    return labels
+    points: np.ndarray  # [M, 3]
+    inside: np.ndarray  # [M] bool
+    tol: float
 
+    @classmethod
+    def from_view(cls, view: ViewSamples, region: np.ndarray, tol: float) -> LiftedRegion:
+        """`region` [H, W] bool of the view; `tol` grows to 2 pixel footprints at the median
+        depth when those are larger (sparse samples of a small image must still touch)."""
+        points, pixels = surface_points(view)
+        inside = np.asarray(region).reshape(-1)[pixels]
+        if len(pixels):
+            footprint = float(np.median(view.depth.cpu().numpy()[pixels])) / view.camera.fx
+            tol = max(tol, 2.0 * footprint)
+        return cls(points, inside, tol)
 
-def labels_to_editable(
-    view: ViewSamples, vertices: np.ndarray, labels: np.ndarray, min_opacity: float = 0.5
-) -> torch.Tensor:
-    """[P] bool: the view's object pixels whose surface point (the expected depth along the ray)
-    is nearest to a proxy vertex that is INSIDE the painted region or UNSEEN from the editing
-    view (nothing says it is unedited). Background pixels and pixels of vertices seen outside
-    the region are not editable: L_reg keeps them."""
-    from scipy.spatial import cKDTree
+    def editable(self, view: ViewSamples) -> torch.Tensor:
+        """[P] bool pixels of `view` that may change."""
+        from scipy.spatial import cKDTree
 
-    o, d = view.camera.rays()
-    obj = (view.opacity >= min_opacity).cpu().numpy()
-    editable = np.zeros(len(obj), bool)
-    if obj.any():
-        pts = o[obj] + d[obj] * view.depth.cpu().numpy()[obj, None]
-        _, nearest = cKDTree(vertices).query(pts)
-        editable[obj] = labels[nearest] != OUTSIDE
-    return torch.from_numpy(editable).to(view.opacity.device)
+        editable = np.zeros(view.n_pixels, bool)
+        points, pixels = surface_points(view)
+        if len(pixels) and len(self.points):
+            dist, nearest = cKDTree(self.points).query(points)
+            editable[pixels] = (dist <= self.tol) & self.inside[nearest]
+        return torch.from_numpy(editable).to(view.opacity.device)

@@ -5,27 +5,42 @@ elsewhere, resume, baselines, the CLI and the edit's scene)."""
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
+import shutil
 
 import numpy as np
 import pytest
 import torch
 
-from edit.compositor import EPS, Compositor, composite_hwc
+import sine_cli
+from edit.compositor import EPS, TAU, Compositor, composite_hwc
 from edit.deferred import assemble, deferred_backward, direct_backward, image_tiles, ray_chunks
-from edit.texture_edit import edited_image
+from edit.editing_field import EditingField, edited_query
+from edit.geometry_edit import GeometryEditConfig
+from edit.scene import load_scene
+from edit.targets import recolor_region, write_rgba
+from edit.texture_edit import TextureEditConfig, edited_image, run_texture_edit
 from edit.texture_field import TextureField, cosine_window
 from edit.texture_views import (
+    LiftedRegion,
     ViewSamples,
     render_modification,
+    sample_view,
 )
+from recon.fit import load_fitted, make_sampler
+from recon.rundir import RunDir
 from render.cameras import Camera, look_at
 from render.hashgrid import HashGridConfig
-from render.renderer import render_rays
+from render.io import load_torch, read_image, read_label_map, read_mask, write_mask
+from render.renderer import render_image, render_rays
 from render.sampler import UniformSampler
-from render.template_field import TemplateField, TemplateFieldConfig
+from render.template_field import TemplateField, TemplateFieldConfig, freeze
 
 SMALL_GRID = HashGridConfig(n_levels=4, log2_table=8, max_resolution=32)
+VIEW, OTHER = 2, 3  # tiny run: the car's side; a view a quarter turn away
+PART = 1  # the car's body
 
 
 # ---- compositor -----------------------------------------------------------------------------
@@ -55,10 +70,24 @@ def test_compositor_shapes_and_identity_start():
     # once trained (any head), the output is a sigmoid: inside (0, 1)
     with torch.no_grad():
         comp.head.weight.normal_(0, 0.3)
-    out = comp(template, torch.randn_like(template))
+    mod = torch.randn_like(template)
+    mod[..., :5] = 0.0  # no modification in the first 5 columns
+    out = comp(template, mod)
     assert out.min() > 0 and out.max() < 1 and not torch.allclose(out, template, atol=1e-2)
+    # ... and where F_dT modifies nothing the gate keeps the template, whatever the weights
+    assert torch.allclose(out[..., :5], template[..., :5], atol=1e-5)
     with pytest.raises(ValueError, match="two"):
         comp(template, template[:, :2])
+    # the gate by hand: g = 1 - exp(-(|I_m|_1 / TAU)^2) scales the head's residual
+    comp = Compositor()
+    with torch.no_grad():
+        comp.head.bias.fill_(1.0)  # residual 1 everywhere
+    t = torch.full((1, 3, 4, 4), 0.5)
+    m = torch.zeros_like(t)
+    m[:, 0] = TAU  # |I_m|_1 = TAU: g = 1 - 1/e
+    g = 1 - math.exp(-1)
+    expected = torch.sigmoid(torch.logit(torch.tensor([0.5 + TAU, 0.5, 0.5])) + g)
+    assert torch.allclose(comp(t, m)[0, :, 2, 2], expected, atol=1e-6)
 
 
 def test_composite_hwc_without_compositor_is_the_clamped_sum():
@@ -99,6 +128,7 @@ def _random_view(h: int, w: int, seed: int) -> ViewSamples:
         template_rgb=torch.rand(h * w, 3, generator=g) * 0.8 + 0.1,
         opacity=torch.rand(h * w, generator=g),
         depth=torch.zeros(h * w),
+        surface=torch.zeros(h * w, 3),
         points=torch.rand(n, 3, generator=g) * 1.6 - 0.8,
         weights=torch.rand(n, generator=g) * 0.5,
         pixel=torch.repeat_interleave(torch.arange(h * w), counts),
@@ -187,3 +217,209 @@ def test_image_tiles_cover_the_image_once_with_even_halo_boxes():
     assert torch.equal(full, torch.stack([ys, xs], -1).float())
     assert calls[0] == (0, 6, 0, 6) and calls[3] == (2, 10, 2, 7)  # grown by 2, clipped
     assert all(c[0] % 2 == 0 and c[2] % 2 == 0 for c in calls)
+
+
+# ---- views kept for F_dT against the renderer ------------------------------------------------
+def test_sample_view_matches_the_renderer(tiny_fitted_run):
+    """I_o of the kept view is the template's rendering; with every sample kept, I_m is the
+    renderer's "mod" channel through the editing field (training renders what the scene does)."""
+    torch.manual_seed(0)
+    template, background, fit_cfg = load_fitted(tiny_fitted_run)
+    freeze(template)
+    sampler = make_sampler(fit_cfg, RunDir(tiny_fitted_run))
+    camera = RunDir(tiny_fitted_run).load_cameras().frames[VIEW].resized(40, 40)
+    view = sample_view(camera, template, sampler, background, min_weight=0.0)
+    reference = render_image(camera, template, sampler, background)
+    assert torch.allclose(
+        view.template_rgb, torch.from_numpy(reference["rgb"]).reshape(-1, 3), atol=1e-5
+    )
+    assert torch.allclose(
+        view.opacity, torch.from_numpy(reference["opacity"]).reshape(-1), atol=1e-5
+    )
+    editing = EditingField(template.grid.cfg)
+    with torch.no_grad():
+        editing.texture.mlp[-1].weight.normal_(0, 0.5)
+        for deform in (editing.deform, editing.forward_deform):
+            deform.mlp[-1].weight.zero_(), deform.mlp[-1].bias.zero_()
+    rendered = render_image(camera, edited_query(template, editing), sampler, background)
+    mod = render_modification(view, editing.texture, chunk=100)
+    assert mod.abs().max() > 0.01
+    assert torch.allclose(mod, torch.from_numpy(rendered["mod"]).reshape(-1, 3), atol=1e-5)
+    # pruned samples: fewer queries, nearly the same image
+    pruned = sample_view(camera, template, sampler, background, min_weight=1e-2)
+    assert pruned.points.shape[0] < 0.8 * view.points.shape[0]
+    assert (render_modification(pruned, editing.texture) - mod).abs().max() < 0.05
+    # a crop holds its pixels' samples
+    crop = view.crop(10, 30, 5, 25)
+    assert crop.size == (20, 20)
+    full = mod.reshape(40, 40, 3)[10:30, 5:25].reshape(-1, 3)
+    assert torch.allclose(render_modification(crop, editing.texture), full, atol=1e-6)
+
+
+def test_lifted_region_follows_the_painted_half_and_keeps_the_unseen_side(tiny_fitted_run):
+    """The left half of the editing view painted: in that view the lifted mask is the painted
+    object pixels; from the opposite side (surface the editing view never saw) nothing may
+    change; the background never."""
+    run = RunDir(tiny_fitted_run)
+    template, background, fit_cfg = load_fitted(run.root)
+    sampler = make_sampler(fit_cfg, run)
+    frames = run.load_cameras().frames
+    camera = frames[VIEW]
+    region = np.zeros((camera.height, camera.width), bool)
+    region[:, : camera.width // 2] = True
+    view = sample_view(camera, template, sampler, background)
+    lifted = LiftedRegion.from_view(view, region, tol=0.02)
+    assert lifted.tol >= 2 * 2.0 / camera.fx  # two pixel footprints at the depth (> 2)
+    obj = view.opacity.reshape(64, 64).numpy() > 0.5
+    editable = lifted.editable(view).reshape(64, 64).numpy()
+    assert editable[obj & region].all() and not editable[obj & ~region].any()
+    assert not editable[~obj].any()
+    far = sample_view(frames[(VIEW + 4) % len(frames)], template, sampler, background)
+    assert lifted.editable(far).float().mean() < 0.05
+
+
+# ---- a tiny texture edit end to end ---------------------------------------------------------
+TINY_TEXTURE = dict(
+    iterations=30,
+    coarse_to_fine=0.2,
+    tex_size=48,
+    patch_size=32,
+    jitter_copies=1,
+    previews=0,
+    threads=1,
+    log_every=1,
+    tile=32,
+)
+
+
+@pytest.fixture(scope="module")
+def texture_run(tiny_fitted_run, tmp_path_factory):
+    """A copy of the tiny run, a target (view VIEW with the body's hue turned by 120 degrees,
+    made with edit/targets.py) and an uninterrupted tiny texture edit "full"."""
+    run = tmp_path_factory.mktemp("texture_edit") / "run"
+    shutil.copytree(tiny_fitted_run, run)
+    scene = load_scene(run, device="cpu")
+    camera = RunDir(run).load_cameras().frames[VIEW]
+    view = scene.render_view(camera)
+    region = read_label_map(run / "labels" / camera.name) == PART
+    write_mask(run / "region.png", region)
+    image = recolor_region(view["rgb"], region, 120.0)
+    write_rgba(run / "target.png", image, view["opacity"], background=scene.background().numpy())
+    cfg = TextureEditConfig(**TINY_TEXTURE)
+    args = (run, VIEW, run / "target.png", "full", cfg)
+    metrics = run_texture_edit(*args, region=run / "region.png", progress=False)
+    return run, metrics
+
+
+def test_texture_edit_lowers_its_loss_and_changes_the_part_most(texture_run):
+    run, metrics = texture_run
+    out = run / "edits" / "full"
+    log = json.loads((out / "log.json").read_text())
+    assert [e["step"] for e in log] == list(range(1, 31))
+    for e in log:  # every term logged and summed into the loss
+        assert e["loss"] == pytest.approx(
+            sum(e[k] for k in ("reg", "photometric", "cls", "structure", "reg_field")), rel=1e-5
+        )
+    photo = [e["photometric"] for e in log]
+    assert np.mean(photo[-5:]) < 0.6 * np.mean(photo[:5]), photo
+    for name in ("edit_field.pt", "region.png", "target.png", "template_view.png", "metrics.json"):
+        assert (out / name).is_file(), name
+    saved = load_torch(out / "edit_field.pt")
+    assert saved["method"] == "texture" and saved["compositor"] is not None
+    assert metrics["iterations"] == 30 and metrics["mask_source"] == "lifted"
+    frames = RunDir(run).load_cameras().frames
+    template, edit = load_scene(run, device="cpu"), load_scene(run, edit="full", device="cpu")
+    target = read_image(run / "edits" / "full" / "target.png")
+    for k in (VIEW, OTHER):
+        part = read_label_map(run / "labels" / frames[k].name) == PART
+        before = template.render_view(frames[k])
+        after = edit.render_view(frames[k])["rgb"]
+        change = np.abs(after - before["rgb"]).sum(-1)
+        rest = (before["opacity"] > 0.5) & ~part
+        factor = 3 if k == VIEW else 1.5  # OTHER sees part of the body VIEW saw
+        assert change[part].mean() > factor * change[rest].mean(), (k, change[part].mean())
+
+        if k == VIEW:  # nearer to the target than the template is, on the part
+            assert (
+                np.abs(after - target)[part].mean()
+                < 0.7 * np.abs(before["rgb"] - target)[part].mean()
+            )
+
+
+def test_interrupted_texture_edit_resumes_bit_exactly(texture_run):
+    run, _ = texture_run
+    cfg = TextureEditConfig(**TINY_TEXTURE)
+    args = (run, VIEW, run / "target.png", "resumed", cfg)
+    kwargs = {"region": run / "region.png", "progress": False}
+    assert run_texture_edit(*args, **kwargs, stop_at=10) == {"step": 10}
+    assert (run / "edits" / "resumed.partial" / "checkpoint.pt").is_file()
+    assert run_texture_edit(*args, **kwargs)["iterations"] == 30
+    full = load_torch(run / "edits" / "full" / "edit_field.pt")
+    resumed = load_torch(run / "edits" / "resumed" / "edit_field.pt")
+    for part in ("editing", "compositor"):
+        assert full[part].keys() == resumed[part].keys()
+        for k in full[part]:
+            assert torch.equal(full[part][k], resumed[part][k]), (part, k)
+    assert run_texture_edit(*args, **kwargs)["skipped"]
+
+
+def test_texture_baselines_and_scene(texture_run):
+    run, _ = texture_run
+    camera = RunDir(run).load_cameras().frames[VIEW]
+    region = read_mask(run / "region.png")
+    target = read_image(run / "edits" / "full" / "target.png")
+    variants = (  # the cheap parts only: no DINO
+        ("naive", {"method": "naive", "iterations": 40, "lr_naive": 1e-2}),
+        ("sum", {"compositor": False, "tex_views": 0, "iterations": 16}),
+    )
+    for name, change in variants:
+        cfg = dataclasses.replace(TextureEditConfig(**TINY_TEXTURE), **change)
+        run_texture_edit(
+            run, VIEW, run / "target.png", name, cfg, region=run / "region.png", progress=False
+        )
+        saved = load_torch(run / "edits" / name / "edit_field.pt")
+        assert saved["method"] == ("naive" if name == "naive" else "texture")
+        assert name == "naive" or saved["compositor"] is None
+        after = load_scene(run, edit=name, device="cpu").render_view(camera)["rgb"]
+        before = read_image(run / "edits" / name / "template_view.png")
+        assert np.abs(after - target)[region].mean() < np.abs(before - target)[region].mean()
+    # strength 0 is the template, exactly the images the compositor blends
+    scene = load_scene(run, edit="full", strength=0.0, device="cpu")
+    template = load_scene(run, device="cpu").render_view(camera)["rgb"]
+    assert np.allclose(scene.render_view(camera)["rgb"], template, atol=1e-5)
+    # exported colours come from the compositor's images
+    vertices, triangles, colours = load_scene(run, edit="full", device="cpu").colored_mesh()
+    assert colours.shape == vertices.shape and colours.min() >= 0 and colours.max() <= 1
+
+
+def test_texture_cli_runs_and_errors_are_one_line(texture_run, capsys):
+    run, _ = texture_run
+    base = ["edit", str(run), "--view", str(VIEW), "--mode", "texture", "--quiet"]
+    tiny = ["--iterations", "2", "--tex-size", "32", "--patch-size", "16", "--previews", "0"]
+    target, region = str(run / "target.png"), str(run / "region.png")
+    capsys.readouterr()
+    assert (
+        sine_cli.main(base + ["--target", target, "--region", region, "--name", "cli"] + tiny) == 0
+    )
+    out = capsys.readouterr().out
+    assert "edit cli (texture, ours): 2 steps" in out and "edited part of view" in out
+    assert json.loads((run / "edits" / "cli" / "edit.json").read_text())["tex_size"] == 32
+    for args, message in (
+        (base, "needs --target"),
+        (base + ["--target", target, "--mask", region], "--mask is for --mode geometry"),
+        (["edit", str(run), "--view", "0", "--reference", target, "--quiet"], "--reference is for"),
+        (base + ["--reference", str(run / "nope.png")], "does not exist"),
+    ):
+        assert sine_cli.main(args) == 2
+        err = capsys.readouterr().err.strip()
+        assert message in err and "\n" not in err, err
+
+
+def test_options_of_both_modes_share_their_defaults():
+    """`sine edit` adds an option both configs have once: its default must fit both."""
+    geometry = {f.name: f for f in dataclasses.fields(GeometryEditConfig)}
+    shared = [f for f in dataclasses.fields(TextureEditConfig) if f.name in geometry]
+    assert {f.name for f in shared} >= {"method", "iterations", "w_reg", "seed", "previews"}
+    for f in shared:
+        assert f.default == geometry[f.name].default, f.name
+        assert f.metadata.get("choices") == geometry[f.name].metadata.get("choices"), f.name
