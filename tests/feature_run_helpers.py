@@ -37,8 +37,8 @@ TINY_FEATURES = dict(
 
 def tiny_feature_run(tmp_path_factory, features: bool = True) -> Path:
     """Path of the shared tiny run (synth -> fit [-> features]); built on first use."""
-    from recon import synth
     from edit.feature_field_fit import FeaturesConfig, distill_features
+    from recon import synth
     from recon.fit import FitConfig, fit_template
 
     root = tmp_path_factory.getbasetemp() / "tiny_feature_run"
