@@ -50,7 +50,8 @@ from edit.shape_prior import PriorMesh, build_prior_mesh
 from edit.template_scene import load_template_scene
 from recon.fit import load_fitted, make_sampler
 from recon.rundir import RunDir
-from recon.training import Trainer, exponential_decay
+from recon.training import RUNTIME_KEYS as LOOP_RUNTIME_KEYS
+from recon.training import LoopOptions, Trainer, exponential_decay, loop_options
 from render.configs import option, to_dict, validate
 from render.device import pick_device, torch_threads
 from render.errors import SineError
@@ -71,7 +72,7 @@ METHODS = ("ours", "naive")
 
 
 @dataclass
-class GeometryEditConfig:
+class GeometryEditConfig(LoopOptions):
     """Options of a geometric edit (`sine edit --mode geometry`)."""
 
     method: str = option(
@@ -134,23 +135,11 @@ class GeometryEditConfig:
     moved_tol: float = option(
         0.01, "prior displacement (run units) below which a vertex is unedited", low=0
     )
-    checkpoint_every: int = option(100, "steps between checkpoints", low=1)
-    checkpoint_seconds: float = option(60.0, "seconds between checkpoints", low=1)
-    log_every: int = option(25, "steps between log entries", low=1)
     previews: int = option(4, "held-out views rendered as previews at the end (0: none)", low=0)
     seed: int = option(0, "random seed")
-    device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
-    threads: int = option(0, "torch CPU threads (0: torch's default)", low=0)
 
 
-RUNTIME_KEYS = (
-    "device",
-    "threads",
-    "previews",
-    "log_every",
-    "checkpoint_every",
-    "checkpoint_seconds",
-)
+RUNTIME_KEYS = (*LOOP_RUNTIME_KEYS, "previews")
 
 
 # ---- preparation --------------------------------------------------------------------------
@@ -298,11 +287,7 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
         f"edit {out.name}",
         settings,
         RUNTIME_KEYS,
-        iterations=cfg.iterations,
-        seed=cfg.seed,
-        log_every=cfg.log_every,
-        checkpoint_every=cfg.checkpoint_every,
-        checkpoint_seconds=cfg.checkpoint_seconds,
+        **loop_options(cfg),
         force=force,
         progress=progress,
         advice="a lower --lr-deform (or --lr-naive)",
