@@ -137,6 +137,9 @@ class GeometryEditConfig(LoopOptions):
     )
     previews: int = option(4, "held-out views rendered as previews at the end (0: none)", low=0)
     seed: int = option(0, "random seed")
+    # the loop options' defaults for edits (shared with the texture edit's: one CLI option each)
+    checkpoint_every: int = option(100, "steps between checkpoints", low=1)
+    log_every: int = option(25, "steps between log entries", low=1)
 
 
 RUNTIME_KEYS = (*LOOP_RUNTIME_KEYS, "previews")
