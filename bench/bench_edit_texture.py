@@ -19,6 +19,11 @@ against the ground truth:
 Writes DIR/results.json ({"cases": [...]}) and DIR/<object>_sheet.png (rows: held-out views;
 columns: template | each method | ground truth). `--quick`: toycar only, ours + naive, fewer steps.
 
+`--reference OBJECT`: the unaligned case: each object's part (GT label in the editing view as the
+region) takes the look of a render of OBJECT (e.g. avocado) given as `--reference`; writes the
+before/after previews of 4 views as DIR/<object>_reference_OBJECT_sheet.png and the DINO CLS
+distance to the photo before / after into DIR/reference.json.
+
 `--memory RUN`: peak memory of one texture step (one L_tex view at each of --sizes px, DINO at 224,
 compositor, L_reg) with deferred back-propagation (tiles of 128 px, F_dT on at most 32768
 samples at a time) and, for contrast, direct back-propagation, each in a fresh subprocess: a thread samples the process's resident memory (/proc/self/statm) every
@@ -43,10 +48,17 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+DATA = Path(__file__).resolve().parents[2] / "shared/data/meshes"
 MESHES = {
-    "spot": Path(__file__).resolve().parents[2] / "shared/data/meshes/spot/spot_triangulated.obj"
+    "spot": DATA / "spot/spot_triangulated.obj",
+    "avocado": DATA / "avocado/avocado.obj",
 }
-VARIANTS = {"ours": {}, "naive": {"method": "naive"}, "no_compositor": {"compositor": False}}
+VARIANTS = {
+    "ours": {},
+    "naive": {"method": "naive"},
+    "no_compositor": {"compositor": False},
+    "template": None,  # no edit at all: what the template scores (context for the others)
+}
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -258,6 +270,63 @@ def memory_bench(run_dir: Path, sizes: list[int], out: Path) -> list[dict]:
     return rows
 
 
+# ---- unaligned: a reference photo of another object ------------------------------------------
+def reference_photo(name: str, out: Path, size: int) -> Path:
+    """A render of another object (`sine synth`, 8 views, the first one) as an RGBA photo."""
+    from edit.targets import write_rgba
+    from recon.synth import SynthConfig, synthesize
+    from render.io import read_image, read_mask
+
+    syn = out / f"reference_{name}"
+    if not (syn / "cameras.json").is_file():
+        source = {"mesh": MESHES[name]} if name in MESHES else {"procedural": name}
+        synthesize(SynthConfig(out=syn, views=8, width=size, height=size, **source), progress=False)
+    frame = sorted((syn / "images").glob("*.png"))[1]
+    photo = out / f"reference_{name}.png"
+    write_rgba(photo, read_image(frame), read_mask(syn / "masks" / frame.name).astype(np.float32))
+    return photo
+
+
+def unaligned(args, obj: str, reference: str) -> dict:
+    """Ours with --reference: the object's part (its GT label in the editing view) takes the
+    look of the reference photo; CLS distances to the photo before / after on 4 views."""
+    from edit.texture_edit import TextureEditConfig, run_texture_edit
+    from render.io import read_image, write_image
+
+    work = args.out / obj
+    syn, run, _ = prepare_object(
+        obj, work, args.size, args.views, args.fit_iterations, not args.no_features
+    )
+    photo = reference_photo(reference, args.out, args.size)
+    k = pick_edit_view(run, syn)
+    region = painted_region(syn, run.load_cameras().frames[k], work / "region.png")
+    options = {k_: json.loads(v) for k_, v in (kv.split("=", 1) for kv in args.set)}
+    cfg = TextureEditConfig(previews=4, threads=args.threads, **options)
+    if args.iterations:
+        cfg.iterations = args.iterations
+    name = f"reference_{reference}{args.tag}"
+    t0 = time.perf_counter()
+    m = run_texture_edit(
+        run.root, k, None, name, cfg, region=region, reference=photo, progress=False
+    )
+    previews = sorted((run.edit(name) / "previews").glob("*.png"))
+    sheet = np.concatenate([read_image(p) for p in previews], axis=0)
+    write_image(args.out / f"{obj}_{name}_sheet.png", sheet)
+    case = {
+        "object": obj,
+        "reference": reference,
+        "edit_view": k,
+        "cls_distance_before": m["preview_cls_distance_before"],
+        "cls_distance_after": m["preview_cls_distance_after"],
+        "unedited_view_psnr": m.get("unedited_view_psnr"),
+        "mask_source": m.get("mask_source"),
+        "iterations": m["iterations"],
+        "seconds": m.get("total_seconds", time.perf_counter() - t0),
+    }
+    print(json.dumps(case), flush=True)
+    return case
+
+
 # ---- the benchmark --------------------------------------------------------------------------
 def main() -> int:
     ap = argparse.ArgumentParser(
@@ -266,7 +335,9 @@ def main() -> int:
     ap.add_argument("--out", type=Path, required=True, help="work and results folder")
     ap.add_argument("--quick", action="store_true", help="toycar only, ours + naive, fewer steps")
     ap.add_argument("--objects", nargs="+", default=["toycar", "figurine", "spot"])
-    ap.add_argument("--methods", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    ap.add_argument(
+        "--methods", nargs="+", default=["ours", "naive", "no_compositor"], choices=list(VARIANTS)
+    )
     ap.add_argument("--size", type=int, default=256, help="image size (square)")
     ap.add_argument("--views", type=int, default=36, help="views on the ring")
     ap.add_argument("--iterations", type=int, default=None, help="edit steps (default: the edit's)")
@@ -287,6 +358,11 @@ def main() -> int:
         help="texture-edit options for every method (e.g. w_cls=1e-3); VALUE is read as JSON",
     )
     ap.add_argument("--tag", default="", help="suffix of the edits' names (variants side by side)")
+    ap.add_argument(
+        "--reference",
+        help="unaligned case instead: the objects' part takes the look of a render of this "
+        "object (e.g. avocado); before/after previews and CLS distances",
+    )
     ap.add_argument("--memory", type=Path, help="measure one step's peak memory on this RUN")
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512], help="--memory sizes")
     args = ap.parse_args()
@@ -297,6 +373,12 @@ def main() -> int:
     if args.quick:
         args.objects, args.methods = ["toycar"], ["ours", "naive"]
         args.iterations = args.iterations or 300
+    if args.reference:
+        from render.io import write_json
+
+        cases = [unaligned(args, obj, args.reference) for obj in args.objects]
+        write_json(args.out / f"reference{args.tag}.json", {"cases": cases})
+        return 0
 
     import dataclasses
 
@@ -327,14 +409,17 @@ def main() -> int:
         for method in args.methods:
             options = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in args.set)}
             cfg = TextureEditConfig(previews=0, threads=args.threads, **options)
-            cfg = dataclasses.replace(cfg, **VARIANTS[method])
+            cfg = dataclasses.replace(cfg, **(VARIANTS[method] or {}))
             if args.iterations:
                 cfg.iterations = args.iterations
             t1 = time.perf_counter()
             name = method + args.tag
-            m = run_texture_edit(run.root, k, target, name, cfg, region=region, progress=False)
+            if method == "template":
+                m, scene = {}, template
+            else:
+                m = run_texture_edit(run.root, k, target, name, cfg, region=region, progress=False)
+                scene = load_scene(run.root, edit=name)
             seconds = m.get("total_seconds", time.perf_counter() - t1)
-            scene = load_scene(run.root, edit=name)
             metrics, rows = score(run, syn, scene, template, views)
             case = {
                 "object": obj,

@@ -11,7 +11,7 @@ the same weights, `edit.editing_field.edited_query`) into the edited view I:
              concat with e1 (skip), conv3x3 32 -> 16, ReLU
              conv3x3 16 -> 3 (the head)
     output   I = sigmoid(logit(clamp(I_o + I_m, eps, 1 - eps)) + g * head)
-             g = 1 - exp(-(|I_m|_1 / TAU)^2)  per pixel (the modification's presence)
+             g in [0, 1] per pixel: where the edit may act (below)
 
 The head predicts a residual in logit space on top of the plain sum I_o + I_m (which is what the
 `--no-compositor` baseline renders). The head starts at zero, so before training the composite is
@@ -19,11 +19,14 @@ exactly clamp(I_o + I_m) (up to the eps clamp), and with m' = 0 (F_dT's start) i
 starts at the template. The sum in the base keeps F_dT's colours on a direct path to the image
 from the first step (with a zero head nothing else would reach them); the UNet then learns the
 blending the per-point field cannot (a colour mapping shared by all views, view-dependent looks).
-The gate g confines it to where F_dT modifies something: a pixel with I_m = 0 stays I_o whatever
-the UNet learnt, so the compositor cannot turn into a global recolouring of the object (without
-it, it learns the edited part's colour change as a colour transform of every pixel within a few
-dozen steps); squared, so the faint colours F_dT leaks elsewhere (|I_m|_1 of a few 1e-3) open
-it by less than 1 %. The output is a sigmoid, in (0, 1).
+The gate g confines it to the edited part, so the compositor cannot turn into a global recolouring
+of the object (without a gate, it learns the edited part's colour change as a colour transform of
+every pixel within a few dozen steps). Texture edits give g as an image: the edited part's 3D
+region (`edit.edit_gate.EditGate`, from the semantic masks of every training view) rendered into
+the view, so the UNet's colour mapping reaches every side of the part, seen in view K or not.
+Without one, g comes from the modification itself, g = 1 - exp(-(|I_m|_1 / TAU)^2): a pixel
+with I_m = 0 stays I_o (squared, so faint colours F_dT leaks elsewhere, |I_m|_1 of a few 1e-3,
+open it by less than 1 %). The output is a sigmoid, in (0, 1).
 
 Every layer is a 3x3 convolution, a x2 down- or up-sampling: the network commutes with shifts of
 the image by an even number of pixels and each output pixel depends on input pixels at most 7
@@ -68,22 +71,36 @@ class Compositor(nn.Module):
         d1 = F.relu(self.dec1(torch.cat([d2, e1], dim=1)))
         return self.head(d1)
 
-    def forward(self, template: torch.Tensor, modification: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self,
+        template: torch.Tensor,
+        modification: torch.Tensor,
+        region: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """I_o, I_m [B, 3, H, W]; `region` [B, 1, H, W] in [0, 1]: the gate g itself (the edited
+        part's 3D region rendered into the view); None: g from I_m (see the module doc)."""
         if template.shape != modification.shape or template.dim() != 4 or template.shape[1] != 3:
             raise ValueError(
                 f"expected two [B, 3, H, W] images, got {tuple(template.shape)} and "
                 f"{tuple(modification.shape)}"
             )
         base = (template + modification).clamp(EPS, 1.0 - EPS)
-        presence = modification.abs().sum(dim=1, keepdim=True) / TAU  # [B, 1, H, W]
-        gate = 1.0 - torch.exp(-(presence**2))
+        if region is None:
+            presence = modification.abs().sum(dim=1, keepdim=True) / TAU  # [B, 1, H, W]
+            gate = 1.0 - torch.exp(-(presence**2))
+        else:
+            gate = region
         return torch.sigmoid(torch.logit(base) + gate * self.residual(template, modification))
 
 
-def composite_hwc(compositor: Compositor | None, template, modification) -> torch.Tensor:
-    """Images [H, W, 3] (torch) -> the edited image [H, W, 3]; None: the plain sum, clamped
-    (the `--no-compositor` rendering, `edit.editing_field.combine`)."""
+def composite_hwc(
+    compositor: Compositor | None, template, modification, region=None
+) -> torch.Tensor:
+    """Images [H, W, 3] (torch; `region` [H, W] or None) -> the edited image [H, W, 3]; no
+    compositor: the plain sum, clamped (the `--no-compositor` rendering,
+    `edit.editing_field.combine`)."""
     if compositor is None:
         return (template + modification).clamp(0.0, 1.0)
-    chw = compositor(template.permute(2, 0, 1)[None], modification.permute(2, 0, 1)[None])
+    gate = None if region is None else region.reshape(1, 1, *region.shape[:2])
+    chw = compositor(template.permute(2, 0, 1)[None], modification.permute(2, 0, 1)[None], gate)
     return chw[0].permute(1, 2, 0)

@@ -116,16 +116,27 @@ class TextureEditScene(EditScene):
     """A texture edit: I_o and I_m rendered with the same weights, then the compositor."""
 
     compositor: Compositor | None = None
+    compositor_region: bool = False  # the compositor's g is the edit's gate rendered
     color_views: int = 8  # views rendered to colour exported vertices
 
     def render_view(self, camera, chunk: int = 16384) -> dict[str, np.ndarray]:
-        query = edited_query(self.template.field, self.editing, 1.0)
+        edited_colours = edited_query(self.template.field, self.editing, 1.0)
+
+        def query(points, dirs):
+            out = edited_colours(points, dirs)
+            if self.compositor_region:  # composited like the colours: g of each pixel
+                out["region"] = self.editing.gate(points)[:, None]
+            return out
+
         out = render_image(
             camera, query, self.sampler(), self.template.background, chunk, self.device
         )
         template, mod = (torch.from_numpy(out[k]).to(self.device) for k in ("rgb", "mod"))
+        region = None
+        if self.compositor_region:
+            region = torch.from_numpy(out["region"][..., 0]).to(self.device)
         with torch.no_grad():
-            edited = composite_hwc(self.compositor, template, mod)
+            edited = composite_hwc(self.compositor, template, mod, region)
         rgb = (1.0 - self.strength) * template + self.strength * edited
         return {"rgb": rgb.cpu().numpy(), **{k: out[k] for k in ("opacity", "depth", "z")}}
 
@@ -194,6 +205,7 @@ def scene_from_folder(run: RunDir, edit_dir, strength: float, device: torch.devi
             strength=float(strength),
             band_width=float(data["band_width"]),
             compositor=compositor,
+            compositor_region=bool(data.get("compositor_region", False)),
         )
     return EditScene(
         run=run,

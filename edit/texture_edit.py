@@ -41,7 +41,8 @@ F_dT re-rendered chunk by chunk with a graph):
   whole object. Beyond the paper (as geometry edits): F_dT is multiplied by a 3D gate
   (`edit.edit_gate.EditGate`) that is 1 near the samples of view K's region and of every
   training camera's editable pixels and 0 farther than `gate_outer`: there the edit is exactly
-  the template (the compositor's residual is gated by I_m too).
+  the template; rendered into each view, the same gate is the compositor's g (its residual acts
+  on the part's pixels only, on every side of the part).
 
 `--no-compositor` (a baseline): I = clamp(I_o + I_m), i.e. m' added to c' inside volume
 rendering (`edit.editing_field.combine`), same losses. `--method naive` (a baseline): the
@@ -71,6 +72,7 @@ from edit.texture_views import (
     ViewSamples,
     box_pixels,
     jittered_camera,
+    render_gate,
     render_modification,
     sample_view,
     scaled_camera,
@@ -109,6 +111,13 @@ class TextureEditConfig:
     iterations: int = option(600, "training steps", low=1)
     lr_grid: float = option(3e-2, "Adam learning rate of F_dT's hash table", low=1e-12)
     lr_mlp: float = option(1e-3, "Adam learning rate of F_dT's MLP", low=1e-12)
+    mod_dropout: float = option(
+        0.5,
+        "share of view K's crops composited without F_dT's image (the compositor learns the "
+        "part's change from the template alone, which carries it to unseen sides)",
+        low=0,
+        high=1,
+    )
     lr_compositor: float = option(1e-3, "Adam learning rate of the compositor", low=1e-12)
     lr_naive: float = option(1e-3, "naive baseline: learning rate of the colour MLP", low=1e-12)
     lr_final_factor: float = option(
@@ -121,8 +130,11 @@ class TextureEditConfig:
         "multiply F_dT by a 3D gate: 1 near the surface the views' masks let change, 0 beyond "
         "--gate-outer (the rest of the object renders exactly as the template)",
     )
-    gate_inner: float = option(0.03, "gate: 1 within this distance (run units)", low=0)
-    gate_outer: float = option(0.08, "gate: 0 beyond this distance (run units)", low=0)
+    gate_inner: float = option(0.02, "gate: 1 within this distance (run units)", low=0)
+    gate_outer: float = option(0.05, "gate: 0 beyond this distance (run units)", low=0)
+    gate_weight: float = option(
+        0.05, "gate: built from editable pixels' samples of at least this weight", low=0
+    )
     gate_resolution: int = option(128, "gate: voxels per side over [-1, 1]^3", low=2)
     w_reg_field: float = option(
         1.0, "weight of |F_dT|^2 at surface points of unedited pixels (3D side of L_reg)", low=0
@@ -401,6 +413,7 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
                 "method": "texture",
                 "editing": editing.state_dict(),
                 "compositor": None if compositor is None else compositor.state_dict(),
+                "compositor_region": bool(cfg.gate),  # g = the gate rendered (else from I_m)
                 "band_width": float(fit_cfg.band_width),
             },
         )
@@ -527,10 +540,24 @@ def _ours(run, cfg, trainer, template, sampler, background, setup: TextureSetup,
     bank = ViewBank(train, cfg.jitter_copies, cfg.jitter_deg, cfg.tex_size, cfg.seed, make_view)
     if cfg.gate:  # F_dT is zero away from the edited part as the views' masks see it
         views = [setup.view] + [bank[j] for j in range(len(train))]
-        points = torch.cat([v.points[v.editable[v.pixel]] for v in views]).cpu().numpy()
+        # the samples that make the editable pixels' colour (a fuzzy template spreads weight
+        # along the ray: the faint ones would grow the gate over neighbouring parts)
+        points = (
+            torch.cat(
+                [v.points[v.editable[v.pixel] & (v.weights >= cfg.gate_weight)] for v in views]
+            )
+            .cpu()
+            .numpy()
+        )
         editing.gate.set_from_points(points, cfg.gate_inner, cfg.gate_outer, cfg.gate_resolution)
 
-    k_view = setup.view
+    def with_region(view: ViewSamples) -> ViewSamples:
+        """The view with the gate rendered into it (the compositor's g), once per view."""
+        if cfg.gate and view.region is None:
+            view.region = render_gate(view, editing.gate)
+        return view
+
+    k_view = with_region(setup.view)
     h_k, w_k = k_view.size
     target = None
     if setup.target_rgb is not None:  # kept with the view, so crops carry it along
@@ -573,7 +600,7 @@ def _ours(run, cfg, trainer, template, sampler, background, setup: TextureSetup,
             views.append(crop())
             kinds.append("edit")
         for _ in range(cfg.tex_views if use_tex else 0):
-            views.append(bank[int(torch.randint(len(bank), (1,), generator=gen))])
+            views.append(with_region(bank[int(torch.randint(len(bank), (1,), generator=gen))]))
             kinds.append("tex")
 
         def loss_fn(leaves):
@@ -594,7 +621,15 @@ def _ours(run, cfg, trainer, template, sampler, background, setup: TextureSetup,
                     add("structure", cfg.w_structure * tex["structure"])
             return sum(terms.values()), terms
 
-        images = [edited_image(v, texture, compositor, tile, cfg.chunk) for v in views]
+        # I_m dropout: some crops of view K go through the compositor without F_dT's colours, so
+        # it learns the part's change from the template image alone (what it must do where F_dT
+        # learnt nothing: the part's sides view K does not see)
+        drop = compositor is not None and torch.rand(1, generator=gen).item() < cfg.mod_dropout
+        fields = [None if kind == "edit" and drop else texture for kind in kinds]
+        images = [
+            edited_image(v, f, compositor, tile, cfg.chunk)
+            for v, f in zip(views, fields, strict=True)
+        ]
         _, terms = deferred_backward(images, loss_fn)
         if cfg.w_reg_field > 0:  # F_dT itself is zero where unedited pixels look
             points, weights = unedited_samples(views)
@@ -614,21 +649,26 @@ def edited_image(
     """The edited image I of a view ({"rgb": [h, w, 3]}) in tiles for `deferred_backward`:
     I_m of the whole view is computed once without a graph (`chunk` samples at a time); each
     tile passes its part of it (with a halo of HALO px) through the compositor, and F_dT is
-    queried again, with a graph, only when the tile back-propagates."""
+    queried again, with a graph, only when the tile back-propagates. texture None: I_m = 0
+    (the compositor alone)."""
     h, w = view.size
     known = None
-    if chunk is not None:
+    if chunk is not None and texture is not None:
         with torch.no_grad():
             known = render_modification(view, texture, chunk)
 
     def render(y0, y1, x0, x1):
         part = view.crop(y0, y1, x0, x1)
         size = (y1 - y0, x1 - x0, 3)
-        part_known = None
-        if known is not None:
-            part_known = known[box_pixels(w, y0, y1, x0, x1, known.device)]
-        mod = render_modification(part, texture, chunk, part_known).reshape(size)
-        return {"rgb": composite_hwc(compositor, part.template_rgb.reshape(size), mod)}
+        if texture is None:
+            mod = part.template_rgb.new_zeros(size)
+        else:
+            part_known = None
+            if known is not None:
+                part_known = known[box_pixels(w, y0, y1, x0, x1, known.device)]
+            mod = render_modification(part, texture, chunk, part_known).reshape(size)
+        region = None if part.region is None else part.region.reshape(size[:2])
+        return {"rgb": composite_hwc(compositor, part.template_rgb.reshape(size), mod, region)}
 
     return image_tiles(render, h, w, tile, HALO if compositor is not None else 0)
 

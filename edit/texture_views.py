@@ -43,6 +43,7 @@ class ViewSamples:
     template_sim: torch.Tensor | None = None  # [1, T, T] DINO self-similarity of I_o
     shape: tuple[int, int] | None = None  # (h, w) of a crop; None: the camera's image
     goal: torch.Tensor | None = None  # [P, 3] target colours (the edited view)
+    region: torch.Tensor | None = None  # [P] the edit's 3D gate rendered (compositor's g)
 
     @property
     def size(self) -> tuple[int, int]:
@@ -76,6 +77,7 @@ class ViewSamples:
             editable=None if self.editable is None else self.editable[pixels],
             shape=shape,
             goal=None if self.goal is None else self.goal[pixels],
+            region=None if self.region is None else self.region[pixels],
         )
 
     def crop(self, y0: int, y1: int, x0: int, x1: int) -> ViewSamples:
@@ -188,6 +190,15 @@ def render_modification(
         return out
     m = texture(view.points) * view.weights[:, None]  # [S, 3]
     return out.index_add(0, view.pixel, m)
+
+
+@torch.no_grad()
+def render_gate(view: ViewSamples, gate) -> torch.Tensor:
+    """The 3D gate w(x) rendered with the view's kept samples: [P] = sum_s w_s gate(x_s)."""
+    out = view.opacity.new_zeros(view.n_pixels)
+    if view.points.shape[0] == 0:
+        return out
+    return out.index_add(0, view.pixel, view.weights * gate(view.points))
 
 
 def box_pixels(width: int, y0: int, y1: int, x0: int, x1: int, device=None) -> torch.Tensor:

@@ -88,6 +88,13 @@ def test_compositor_shapes_and_identity_start():
     g = 1 - math.exp(-1)
     expected = torch.sigmoid(torch.logit(torch.tensor([0.5 + TAU, 0.5, 0.5])) + g)
     assert torch.allclose(comp(t, m)[0, :, 2, 2], expected, atol=1e-6)
+    # a given region is g itself: 0 keeps the plain sum, 1 adds the whole residual
+    region = torch.zeros(1, 1, 4, 4)
+    region[..., 2:, :] = 1.0
+    out = comp(t, m, region)
+    assert torch.allclose(out[0, :, 0, 0], torch.tensor([0.5 + TAU, 0.5, 0.5]), atol=1e-6)
+    full = torch.sigmoid(torch.logit(torch.tensor([0.5 + TAU, 0.5, 0.5])) + 1.0)
+    assert torch.allclose(out[0, :, 3, 3], full, atol=1e-6)
 
 
 def test_composite_hwc_without_compositor_is_the_clamped_sum():
