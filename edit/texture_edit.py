@@ -21,10 +21,13 @@ grid with a coarse-to-fine window over its levels, fully open at `coarse_to_fine
 renders the modification image I_m with those weights, and the compositor (`edit.compositor`)
 blends I_o and I_m into the edited image I. Each step, with deferred back-propagation
 (`edit.deferred`: full images rendered without a graph, the image losses' gradient cached, then
-F_dT re-rendered chunk by chunk with a graph):
+the images re-rendered tile by tile with a graph, F_dT queried in chunks of samples):
 
 - aligned case, a crop of view K (`patch_size`, working resolution): photometric
-  ||I - target||^2 on the painted region's pixels, L_reg ||I - I_o||^2 on the others;
+  ||I - target||^2 on the painted region's pixels, L_reg ||I - I_o||^2 on the others; a share
+  `mod_dropout` of these crops is composited with I_m = 0 (beyond the paper: the compositor
+  must then make the change from the template image alone, which is what carries it to the
+  part's sides view K does not show, where F_dT has learnt nothing);
 - `tex_views` views around the object (the run's training cameras, each in `jitter_copies`
   copies turned by a random rotation of `jitter_deg`; rendered at `tex_size` px, DINO resizes
   them to 224): L_tex = w_cls ||cls(I_t) - cls(I)|| + w_structure ||S(I_o) - S(I)||_F
