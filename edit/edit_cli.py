@@ -101,8 +101,7 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.quiet,
     )
     where = args.run / "edits" / args.name
-    if metrics.get("skipped"):
-        print(f"edit {args.name}: already done with these options -> {where} (--force redoes it)")
+    if already_done(args.name, where, metrics):
         return 0
     print(
         f"edit {args.name} ({metrics['method']}): {metrics['iterations']} steps in "
@@ -112,6 +111,13 @@ def run(args: argparse.Namespace) -> int:
         f"prior_preview.png and previews/)"
     )
     return 0
+
+
+def already_done(name: str, where, metrics: dict) -> bool:
+    """Says so when the edit was skipped as finished with these options."""
+    if metrics.get("skipped"):
+        print(f"edit {name}: already done with these options -> {where} (--force redoes it)")
+    return bool(metrics.get("skipped"))
 
 
 def run_texture(args: argparse.Namespace) -> int:
@@ -132,8 +138,7 @@ def run_texture(args: argparse.Namespace) -> int:
         progress=not args.quiet,
     )
     where = args.run / "edits" / args.name
-    if metrics.get("skipped"):
-        print(f"edit {args.name}: already done with these options -> {where} (--force redoes it)")
+    if already_done(args.name, where, metrics):
         return 0
     fit = ""
     if "edited_view_psnr_region" in metrics:

@@ -190,24 +190,7 @@ def scene_from_folder(run: RunDir, edit_dir, strength: float, device: torch.devi
     editing = EditingField(template.field.grid.cfg).to(device)
     editing.load_state_dict({k: v.to(device) for k, v in data["editing"].items()})
     editing.eval()
-    if data["method"] == "texture":
-        compositor = None
-        if data.get("compositor") is not None:
-            compositor = Compositor().to(device)
-            compositor.load_state_dict({k: v.to(device) for k, v in data["compositor"].items()})
-            compositor.eval()
-        return TextureEditScene(
-            run=run,
-            device=device,
-            name=name,
-            template=template,
-            editing=editing,
-            strength=float(strength),
-            band_width=float(data["band_width"]),
-            compositor=compositor,
-            compositor_region=bool(data.get("compositor_region", False)),
-        )
-    return EditScene(
+    common = dict(
         run=run,
         device=device,
         name=name,
@@ -216,3 +199,15 @@ def scene_from_folder(run: RunDir, edit_dir, strength: float, device: torch.devi
         strength=float(strength),
         band_width=float(data["band_width"]),
     )
+    if data["method"] == "texture":
+        compositor = None
+        if data.get("compositor") is not None:
+            compositor = Compositor().to(device)
+            compositor.load_state_dict({k: v.to(device) for k, v in data["compositor"].items()})
+            compositor.eval()
+        return TextureEditScene(
+            **common,
+            compositor=compositor,
+            compositor_region=bool(data.get("compositor_region", False)),
+        )
+    return EditScene(**common)
