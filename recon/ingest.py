@@ -1,8 +1,9 @@
 """Capture ingestion (`sine ingest`): any supported capture -> the start of a run directory.
 
-Reads a folder of images, a video, a NeRF/nerfstudio `transforms.json`, a COLMAP model, a
-Middlebury ring (`*_par.txt`), a NeuS/IDR folder (`cameras_sphere.npz`) or images with per-image
-3x4 projection matrices, and writes (DESIGN.md section 3):
+Reads a folder of images, a video, a NeRF/nerfstudio `transforms.json`, a NeRF-synthetic
+(Blender) folder with `transforms_train.json` (+ `_test`, `_val`), a COLMAP model, a Middlebury
+ring (`*_par.txt`), a NeuS/IDR folder (`cameras_sphere.npz`) or images with per-image 3x4
+projection matrices, and writes (DESIGN.md section 3):
 
 - `images/<stem>.png`: working images, undistorted, resized (never upscaled) to `width`;
 - `captures.json`: source files, sizes, hashes, per-image status, the ingest config;
@@ -11,6 +12,16 @@ Middlebury ring (`*_par.txt`), a NeuS/IDR folder (`cameras_sphere.npz`) or image
   `intrinsics`: fx, fy, cx, cy at the working size) as a fixed prior for SfM, unless
   `ignore_intrinsics` drops them too;
 - `masks/<stem>.png`, `depth/<stem>.npy`: when the input carries them (resized with nearest).
+
+Splits: every `holdout_every`-th view is held out ('test'), except for a NeRF-synthetic folder:
+the frames of `transforms_train.json` are 'train', those of `transforms_test.json` and
+`transforms_val.json` are 'test' (an image listed in several files counts once; the Blender
+datasets' val and test views are both held out). Passing one split file (`.../transforms_train.json`)
+reads that file alone, with the `holdout_every` rule.
+
+RGBA images (NeRF synthetic, cut-outs): where alpha is not all opaque, it becomes the mask
+(unless a mask comes with the view) and the RGB is composited over `background_color` (white by
+default, the NeRF-synthetic convention), since the RGB of transparent pixels is arbitrary.
 
 Lenient where it can be: a pose file listing images that do not exist keeps the ones that do
 (a warning in the notes; fewer than 3 is an error); with `ignore_poses` a pose file that cannot
@@ -64,6 +75,13 @@ SIDECAR_SUFFIXES = (
     ".ply", ".obj", ".mtl", ".log", ".db", ".ini", ".bin", ".pdf", ".html", ".zip",
 )  # fmt: skip
 MIN_VIEWS = 3
+# NeRF-synthetic (Blender) split files: the file and the split its frames get, in reading order.
+SPLIT_FILES = (
+    ("transforms_train.json", "train"),
+    ("transforms_test.json", "test"),
+    ("transforms_val.json", "test"),
+)
+BACKGROUND_NAMES = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
 
 @dataclass
@@ -92,6 +110,11 @@ class IngestConfig:
         None, "folder of foreground masks (0/255 images) matched to images by file stem; wins "
         "over masks that come with the capture"
     )  # fmt: skip
+    background_color: list[str] = option(
+        ["white"],
+        "colour RGBA images (e.g. NeRF synthetic) are composited over, where their alpha becomes "
+        "the mask: white (the NeRF-synthetic convention), black, or R G B in [0, 1]",
+    )
     force: bool = option(False, "re-ingest even if this run already holds the same capture")
 
 
@@ -107,6 +130,7 @@ class SourceView:
     mask: Path | None = None
     depth: Path | None = None
     depth_scale: float = 1.0  # multiplies integer depth images (nerfstudio: mm -> m)
+    split: str | None = None  # given by the capture (NeRF-synthetic split files), else the rule
 
 
 @dataclass
@@ -172,13 +196,23 @@ def ingest_capture(capture: Path, run: RunDir, cfg: IngestConfig | None = None) 
     run.root.mkdir(parents=True, exist_ok=True)
     run.captures.unlink(missing_ok=True)
     splits = assign_splits(len(cap.views), cfg.holdout_every)
+    if any(v.split for v in cap.views):  # the capture says which views are held out
+        splits = [v.split or "train" for v in cap.views]
+    background = background_rgb(cfg.background_color)
     records, cameras = [], []
     for view, split, size in tqdm(
         list(zip(cap.views, splits, sizes, strict=True)), desc="ingest", unit="view", leave=False
     ):
-        record, cam = _ingest_view(view, size, cfg, run, split)
+        record, cam = _ingest_view(view, size, cfg, run, split, background)
         records.append(record)
         cameras.append(cam)
+    alpha = sum(r["alpha"] for r in records)
+    if alpha:
+        colour = ", ".join(f"{c:g}" for c in background)
+        cap.notes.append(
+            f"{alpha} RGBA image(s): alpha used as the mask (where no mask came with the view), "
+            f"RGB composited over the background colour ({colour})"
+        )
     _remove_stale(run, records)
     if use_poses:
         extra = {"source_format": fmt, **cap.extra}
@@ -200,6 +234,7 @@ def ingest_capture(capture: Path, run: RunDir, cfg: IngestConfig | None = None) 
         "format": cap.format,
         "working_width": max(r["width"] for r in records),
         "poses": use_poses,
+        "alpha_background": background.tolist() if alpha else None,
         "config": config,
         "notes": cap.notes,
         "images": records,
@@ -222,6 +257,8 @@ def summarize(captures: dict, run: RunDir) -> dict:
         "test": sum(r["split"] == "test" for r in images),
         "poses": bool(captures.get("poses")),
         "masks": sum(bool(r.get("mask")) for r in images),
+        "alpha_masks": sum(bool(r.get("alpha")) for r in images),
+        "background": captures.get("alpha_background"),
         "depth": sum(bool(r.get("depth")) for r in images),
         "undistorted": sum(bool(r.get("undistorted")) for r in images),
         "working_size": "mixed" if len(work) > 1 else f"{work[0][0]}x{work[0][1]}",
@@ -255,6 +292,8 @@ def detect_format(capture: Path) -> str:
         raise SineError(f"{capture} is neither a file nor a folder")
     if (capture / "transforms.json").is_file():
         return "transforms"
+    if (capture / SPLIT_FILES[0][0]).is_file():  # NeRF synthetic (Blender)
+        return "transforms"
     if (capture / "cameras_sphere.npz").is_file():
         return "neus"
     if _find_colmap_model(capture) is not None:
@@ -267,8 +306,8 @@ def detect_format(capture: Path) -> str:
     split_files = sorted(p.name for p in capture.glob("transforms_*.json"))
     if split_files:
         raise SineError(
-            f"{capture} holds {', '.join(split_files)} but no transforms.json: pass the file to "
-            "ingest (e.g. CAPTURE/transforms_train.json)"
+            f"{capture} holds {', '.join(split_files)} but neither transforms.json nor "
+            f"{SPLIT_FILES[0][0]}: pass the file to ingest (e.g. CAPTURE/{split_files[0]})"
         )
     if folder is not None:
         return "images"
@@ -359,9 +398,48 @@ def _read_video(capture: Path, cfg: IngestConfig) -> Capture:
 
 
 def _read_transforms(capture: Path, cfg: IngestConfig) -> Capture:
+    split_folder = capture.is_dir() and not (capture / "transforms.json").is_file()
+    if split_folder and (capture / SPLIT_FILES[0][0]).is_file():
+        return _read_split_transforms(capture)
     path = capture / "transforms.json" if capture.is_dir() else capture
     if not path.is_file():
         raise SineError(f"format 'transforms' needs a transforms.json; {path} does not exist")
+    views, notes = _transforms_views(path)
+    return Capture("transforms", views, has_poses=True, notes=notes)
+
+
+def _read_split_transforms(folder: Path) -> Capture:
+    """A NeRF-synthetic (Blender) folder: the frames of every split file present, each image
+    once (the first file listing it gives its split; see SPLIT_FILES)."""
+    views, notes, seen, repeated = [], [], set(), Counter()
+    for name, split in SPLIT_FILES:
+        path = folder / name
+        if not path.is_file():
+            continue
+        minimum = MIN_VIEWS if split == "train" else 0
+        file_views, file_notes = _transforms_views(path, minimum)
+        notes += file_notes
+        for view in file_views:
+            key = view.path.resolve()
+            if key in seen:
+                repeated[name] += 1
+                continue
+            seen.add(key)
+            view.split = split
+            views.append(view)
+    counts = Counter(v.split for v in views)
+    notes.append(
+        f"splits from the NeRF-synthetic split files: {counts['train']} train, "
+        f"{counts['test']} test (held out)"
+    )
+    for name, n in repeated.items():
+        notes.append(f"{name} repeats {n} image(s) of an earlier split file: counted once")
+    return Capture("transforms", views, has_poses=True, notes=notes)
+
+
+def _transforms_views(path: Path, minimum: int = MIN_VIEWS) -> tuple[list[SourceView], list[str]]:
+    """The views of one transforms.json-style file and its notes (images it lists that do not
+    exist are skipped with a warning unless fewer than `minimum` remain)."""
     data = read_json(path)
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
         raise SineError(
@@ -379,9 +457,11 @@ def _read_transforms(capture: Path, cfg: IngestConfig) -> Capture:
             missing.append(frame["file_path"])
         else:
             files[frame["file_path"]] = found
-    notes = _missing_note(path, missing, len(files), f"paths are relative to {base}")
+    notes = _missing_note(path, missing, len(files), f"paths are relative to {base}", minimum)
     if missing:
         data = {**data, "frames": [f for f in data["frames"] if f["file_path"] in files]}
+    if not data["frames"] and minimum == 0:
+        return [], notes
     sizes = _probe_files(list(files.values()))
     image_sizes = {fp: sizes[p] for fp, p in files.items()}
     cams = cameras_from_transforms(data, image_sizes)
@@ -397,7 +477,7 @@ def _read_transforms(capture: Path, cfg: IngestConfig) -> Capture:
                 setattr(view, attr, p)
         view.depth_scale = depth_scale
         views.append(view)
-    return Capture("transforms", views, has_poses=True, notes=notes)
+    return views, notes
 
 
 def _read_colmap(capture: Path, cfg: IngestConfig) -> Capture:
@@ -518,12 +598,14 @@ READERS = {
 }
 
 
-def _missing_note(source: Path, missing: list[str], present: int, where: str) -> list[str]:
+def _missing_note(
+    source: Path, missing: list[str], present: int, where: str, minimum: int = MIN_VIEWS
+) -> list[str]:
     """A warning (printed and kept in captures.json's notes) for images a pose file lists that
-    do not exist: the capture goes on with the ones that do, unless fewer than MIN_VIEWS."""
+    do not exist: the capture goes on with the ones that do, unless fewer than `minimum`."""
     if not missing:
         return []
-    if present < MIN_VIEWS:
+    if present < minimum:
         raise SineError(
             f"{source} lists {len(missing) + present} images but only {present} exist "
             f"({where}; missing: {_short_list(missing)}); a reconstruction needs at least "
@@ -539,7 +621,12 @@ def _missing_note(source: Path, missing: list[str], present: int, where: str) ->
 
 # ---- writing one view ---------------------------------------------------------------------
 def _ingest_view(
-    view: SourceView, size: tuple[int, int], cfg: IngestConfig, run: RunDir, split: str
+    view: SourceView,
+    size: tuple[int, int],
+    cfg: IngestConfig,
+    run: RunDir,
+    split: str,
+    background: np.ndarray,
 ) -> tuple[dict, Camera | None]:
     if view.frame is not None:
         rgb = view.frame[..., ::-1].astype(np.float32) / 255.0  # [H, W, 3]
@@ -553,8 +640,12 @@ def _ingest_view(
     h, w = rgb.shape[:2]
     cam = _fit_camera(view.camera, w, h, view.source) if view.camera is not None else None
     mask = _load_mask(view.mask, w, h) if view.mask is not None else None
-    if mask is None and alpha is not None and (alpha < 0.5).any():
-        mask = alpha >= 0.5  # an RGBA capture (e.g. NeRF synthetic): alpha is the foreground
+    use_alpha = alpha is not None and bool((alpha < 1.0).any())
+    if use_alpha:  # an RGBA capture (e.g. NeRF synthetic): alpha is the foreground
+        if mask is None:
+            mask = alpha >= 0.5
+        a = alpha[..., None]
+        rgb = (rgb * a + background.astype(np.float32) * (1.0 - a)).astype(np.float32)
     depth = _load_depth(view, w, h) if view.depth is not None else None
 
     undistorted = cam is not None and bool(np.any(cam.distortion != 0))
@@ -597,6 +688,7 @@ def _ingest_view(
         "status": "ok",
         "split": split,
         "mask": mask is not None,
+        "alpha": use_alpha,
         "depth": depth is not None,
         "undistorted": undistorted,
     }
@@ -664,8 +756,28 @@ def _check_config(cfg: IngestConfig) -> None:
     if cfg.frames < MIN_VIEWS:
         raise SineError(f"--frames {cfg.frames}: sample at least {MIN_VIEWS} frames of a video")
     assign_splits(0, cfg.holdout_every)  # validates holdout_every
+    background_rgb(cfg.background_color)  # validates background_color
     if cfg.format not in FORMATS:
         raise SineError(f"unknown camera format '{cfg.format}': use one of {', '.join(FORMATS)}")
+
+
+def background_rgb(value) -> np.ndarray:
+    """--background-color (white, black or R G B in [0, 1]) -> RGB [3] float64."""
+    words = [
+        str(v).strip().lower() for v in (value if isinstance(value, (list, tuple)) else [value])
+    ]
+    if len(words) == 1 and words[0] in BACKGROUND_NAMES:
+        return np.array(BACKGROUND_NAMES[words[0]])
+    try:
+        rgb = np.array([float(w) for w in words])
+    except ValueError:
+        rgb = np.array([])
+    if rgb.shape != (3,) or not np.all((rgb >= 0) & (rgb <= 1)):
+        raise SineError(
+            f"--background-color {' '.join(words)}: use white, black or three numbers R G B in "
+            "[0, 1] (e.g. 0.5 0.5 0.5)"
+        )
+    return rgb
 
 
 def _config_key(cfg: IngestConfig) -> dict:

@@ -9,6 +9,10 @@ ambient under a light fixed in the world, so the object's appearance is the same
 Known 3D edits of the same mesh (a smooth stretch of the part above a plane, a recoloured part or
 a new texture image) rendered from the same cameras are the ground truth of an edit.
 
+With `--format nerf-synthetic` the views are also written in the Blender / NeRF-synthetic layout
+(`write_nerf_synthetic`), in the `nerf_synthetic/` subfolder (so that the folder holds nothing but
+that dataset and `sine ingest` reads its split files).
+
 Planes are given as (nx, ny, nz, D): the points x with n.x = D (n normalised); "above" is n.x > D.
 """
 
@@ -18,6 +22,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from recon import procedural
@@ -27,6 +32,7 @@ from render.cameras import Camera, CameraSet, cameras_to_transforms, look_at, sa
 from render.configs import option, to_dict
 from render.errors import SineError
 from render.io import (
+    write_bytes_atomic,
     write_depth,
     write_image,
     write_json,
@@ -42,6 +48,8 @@ DEFAULT_LIGHTS = (  # (direction towards the light, intensity), fixed in the wor
 )
 UP_AXES = ("auto", "z", "y", "x", "-z", "-y", "-x")
 EDIT_KINDS = ("geometric", "texture")
+OUTPUT_FORMATS = ("sine", "nerf-synthetic")
+NERF_SYNTHETIC_DIR = "nerf_synthetic"  # where --format nerf-synthetic writes its layout
 
 
 # ---- planes -------------------------------------------------------------------------------
@@ -478,6 +486,55 @@ def write_views(out_dir: Path, cameras: list[Camera], views: list[dict], mesh: M
     return {"views": len(views), "mean_mask_coverage": coverage, "mesh_vertices": len(tm.vertices)}
 
 
+def write_nerf_synthetic(out_dir: Path, cameras: list[Camera], views: list[dict]) -> dict:
+    """Writes the views in the Blender / NeRF-synthetic layout into `out_dir`.
+
+    - `train/<stem>.png`, `test/<stem>.png`: 8-bit RGBA, alpha = the object mask (255 / 0), RGB
+      the object's colour (straight, not premultiplied), 0 on background pixels;
+    - `transforms_train.json`, `transforms_test.json`: `camera_angle_x` (horizontal field of view
+      in radians; square pixels, principal point at the image centre, as the Blender data) and per
+      frame `file_path` without extension (`./train/r_000`) and `transform_matrix` (camera-to-
+      world, OpenGL axes);
+    - `transforms_val.json`: the test views again (the same files): the held-out views are
+      `sine ingest`'s split rule (every 8th view), and ingest does not count them twice.
+    Returns {"train": n, "test": n, "val": n}.
+    """
+    out_dir = Path(out_dir)
+    fx = cameras[0].fx
+    for cam in cameras:
+        centred = abs(cam.cx - cam.width / 2) < 1e-9 and abs(cam.cy - cam.height / 2) < 1e-9
+        if abs(cam.fy - cam.fx) > 1e-9 * cam.fx or abs(cam.fx - fx) > 1e-9 * fx or not centred:
+            raise SineError("the NeRF-synthetic format needs one centred square-pixel camera")
+    angle = float(2.0 * np.arctan(0.5 * cameras[0].width / fx))
+    gl = cameras_to_transforms(cameras, [cam.name for cam in cameras])["frames"]
+    frames: dict[str, list[dict]] = {"train": [], "test": []}
+    for split in frames:
+        (out_dir / split).mkdir(parents=True, exist_ok=True)
+        for stale in (out_dir / split).glob("r_*.png"):  # a previous run with more views
+            stale.unlink()
+    for cam, view, frame in zip(cameras, views, gl, strict=True):
+        split = "test" if cam.split == "test" else "train"
+        stem = Path(cam.name).stem
+        rgba = np.zeros((cam.height, cam.width, 4), np.uint8)
+        rgb = (np.clip(view["rgb"], 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)  # as write_image
+        rgba[..., :3] = np.where(view["mask"][..., None], rgb, 0)
+        rgba[..., 3] = np.where(view["mask"], 255, 0)
+        ok, buf = cv2.imencode(".png", rgba[..., [2, 1, 0, 3]])  # RGBA -> BGRA
+        if not ok:
+            raise SineError(f"cannot encode {out_dir / split / stem}.png")
+        write_bytes_atomic(out_dir / split / f"{stem}.png", buf.tobytes())
+        frames[split].append(
+            {"file_path": f"./{split}/{stem}", "transform_matrix": frame["transform_matrix"]}
+        )
+    frames["val"] = frames["test"]
+    for split, split_frames in frames.items():
+        write_json(
+            out_dir / f"transforms_{split}.json",
+            {"camera_angle_x": angle, "frames": split_frames},
+        )
+    return {split: len(split_frames) for split, split_frames in frames.items()}
+
+
 # ---- the whole command --------------------------------------------------------------------
 @dataclass
 class SynthConfig:
@@ -536,6 +593,14 @@ class SynthConfig:
     edit_texture: Path | None = option(
         None, "texture edit: replace the mesh's texture image by this image instead"
     )
+    format: str = option(
+        "sine",
+        "output layout: sine (images/, masks/, depth/, labels/, transforms.json, cameras.json) or "
+        "nerf-synthetic (all that, plus the Blender/NeRF-synthetic dataset in nerf_synthetic/: "
+        "RGBA train/ and test/ images with alpha = mask, transforms_train/val/test.json; val "
+        "repeats the test views)",
+        choices=list(OUTPUT_FORMATS),
+    )
 
 
 def _validate(cfg: SynthConfig) -> None:
@@ -560,6 +625,8 @@ def _validate(cfg: SynthConfig) -> None:
     unknown = [e for e in cfg.edit if e not in EDIT_KINDS]
     if unknown:
         raise SineError(f"unknown edit {unknown[0]!r}; use {' or '.join(EDIT_KINDS)}")
+    if cfg.format not in OUTPUT_FORMATS:
+        raise SineError(f"unknown --format {cfg.format!r}; use {' or '.join(OUTPUT_FORMATS)}")
     if cfg.edit_texture is not None and not Path(cfg.edit_texture).is_file():
         raise SineError(f"--edit-texture {cfg.edit_texture} does not exist")
 
@@ -658,6 +725,9 @@ def synthesize(cfg: SynthConfig, progress: bool = True) -> dict:
     t_render = time.perf_counter() - t1
     t2 = time.perf_counter()
     stats = write_views(out, cameras, views, mesh)
+    if cfg.format == "nerf-synthetic":
+        write_nerf_synthetic(out / NERF_SYNTHETIC_DIR, cameras, views)
+        stats["nerf_synthetic"] = str(out / NERF_SYNTHETIC_DIR)
     t_write = time.perf_counter() - t2
 
     summary = {
@@ -678,6 +748,9 @@ def synthesize(cfg: SynthConfig, progress: bool = True) -> dict:
         )
         edit_dir = out / "edits" / name
         edit_stats = write_views(edit_dir, cameras, edit_views, edited)
+        if cfg.format == "nerf-synthetic":
+            write_nerf_synthetic(edit_dir / NERF_SYNTHETIC_DIR, cameras, edit_views)
+            edit_stats["nerf_synthetic"] = str(edit_dir / NERF_SYNTHETIC_DIR)
         write_json(edit_dir / "edit.json", params)
         summary["edits"][name] = {**edit_stats, "seconds": time.perf_counter() - t3}
 

@@ -222,15 +222,24 @@ def test_transforms_nerf_blender_form(tmp_path):
     (root / "transforms_train.json").write_text(
         json.dumps({"camera_angle_x": angle, "frames": frames})
     )
-    with pytest.raises(SineError, match="transforms_train.json"):
+    assert detect_format(root) == "transforms"  # a folder with split files: NeRF synthetic
+    for capture in (root, root / "transforms_train.json"):
+        run = RunDir(tmp_path / capture.name)
+        summary = ingest_capture(capture, run, IngestConfig(width=64))
+        assert summary["views"] == summary["train"] == 3
+        assert summary["masks"] == summary["alpha_masks"] == 3
+        got = run.load_cameras().by_name()
+        for cam, i in zip(cams, range(3), strict=True):
+            assert_camera_close(got[f"r_{i}.png"], cam)
+            mask = rect_mask() > 0
+            np.testing.assert_array_equal(read_mask(run.mask_path(f"r_{i}.png")), mask)
+            image = read_image(run.image_path(f"r_{i}.png"))  # composited over white
+            source = cv2.imread(str(root / "train" / f"r_{i}.png"))[..., ::-1] / 255.0
+            np.testing.assert_allclose(image[mask], source[mask], atol=1e-6)
+            assert (image[~mask] == 1.0).all()
+    (root / "transforms_train.json").rename(root / "transforms_test.json")
+    with pytest.raises(SineError, match="transforms_test.json"):
         detect_format(root)
-    run = RunDir(tmp_path / "run")
-    summary = ingest_capture(root / "transforms_train.json", run, IngestConfig(width=64))
-    assert summary["views"] == 3 and summary["masks"] == 3
-    got = run.load_cameras().by_name()
-    for cam, i in zip(cams, range(3), strict=True):
-        assert_camera_close(got[f"r_{i}.png"], cam)
-        np.testing.assert_array_equal(read_mask(run.mask_path(f"r_{i}.png")), rect_mask() > 0)
 
 
 def test_undistortion_moves_points_to_the_pinhole_projection(tmp_path):
@@ -510,5 +519,5 @@ def test_cli_help_lists_every_option(capsys):
         build_parser(["ingest"]).parse_args(["ingest", "--help"])
     out = capsys.readouterr().out
     for flag in ("--out", "--width", "--frames", "--holdout-every", "--format", "--ignore-poses",
-                 "--masks", "--force"):  # fmt: skip
+                 "--masks", "--background-color", "--force"):  # fmt: skip
         assert flag in out
