@@ -168,7 +168,7 @@ def main() -> int:
         )
         print(
             f"[{obj}] template: held-out PSNR {fit.get('heldout_psnr', float('nan')):.2f} dB "
-            f"(object {fit.get('heldout_psnr_foreground', float('nan')):.2f}), {time.perf_counter() - t0:.0f} s"
+            f"(object {fit.get('heldout_psnr_object', float('nan')):.2f}), {time.perf_counter() - t0:.0f} s"
         )
         k = pick_edit_view(run, syn)
         n = len(run.load_cameras().frames)

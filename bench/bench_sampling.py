@@ -123,7 +123,7 @@ def main() -> None:
     print(hdr)
     for name, m in rows:
         print(
-            f"{name:<8} {m['heldout_psnr']:>6.2f} {m.get('heldout_psnr_foreground', 0):>7.2f} "
+            f"{name:<8} {m['heldout_psnr']:>6.2f} {m.get('heldout_psnr_object', 0):>7.2f} "
             f"{m['heldout_ssim']:>6.3f} {m['train_seconds']:>8.1f} "
             f"{m['train_seconds'] / m['iterations']:>7.3f} {m['eval_seconds']:>7.1f} "
             f"{m['samples_per_ray']:>11} {m['train_rays_needing_field']:>10} {m['peak_rss_mb']:>8.0f}"
@@ -134,7 +134,7 @@ def main() -> None:
             f"training speed-up of {rows[0][0]} over {rows[1][0]} (same steps): "
             f"{b['train_seconds'] / a['train_seconds']:.1f}x; PSNR difference "
             f"{a['heldout_psnr'] - b['heldout_psnr']:+.2f} dB (fg "
-            f"{a.get('heldout_psnr_foreground', 0) - b.get('heldout_psnr_foreground', 0):+.2f} dB)"
+            f"{a.get('heldout_psnr_object', 0) - b.get('heldout_psnr_object', 0):+.2f} dB)"
         )
 
 

@@ -80,7 +80,7 @@ from edit.texture_views import (
     sample_view,
     scaled_camera,
 )
-from recon.fit import load_fitted, make_sampler, psnr
+from recon.fit import load_fitted, make_sampler
 from recon.rundir import RunDir
 from recon.training import Trainer
 from render.configs import option, to_dict, validate
@@ -94,6 +94,7 @@ from render.io import (
     write_json,
     write_mask,
 )
+from render.metrics import psnr
 from render.renderer import render_rays
 from render.template_field import freeze
 

@@ -10,7 +10,8 @@ RUN/template.partial/ and, once finished, moves that to RUN/template/:
                        `checkpoint_seconds`; a re-run resumes from it (`--force` starts over)
     field.pt           the final field for later stages (`load_template`; configs as JSON text,
                        loads with weights_only=True)
-    metrics.json       held-out PSNR/SSIM (flat keys: heldout_psnr, heldout_ssim, ...)
+    metrics.json       held-out PSNR/SSIM on object pixels (heldout_psnr_object, the headline)
+                       and whole images (heldout_psnr, heldout_ssim), rays/s, samples/s, ...
     previews/NAME.png  held-out renders (left) next to the ground truth (right)
     log.json           loss / PSNR every `log_every` steps
 """
@@ -32,7 +33,7 @@ from render.device import pick_device, torch_threads
 from render.errors import SineError
 from render.hashgrid import HashGridConfig
 from render.io import load_torch, read_image, read_mask, save_torch, write_image, write_json
-from render.metrics import psnr, psnr_of_mse  # noqa: F401  (psnr: used by importers)
+from render.metrics import masked_psnr, masked_ssim, psnr, psnr_of_mse
 from render.renderer import render_image, render_rays
 from render.sampler import BandSampler, ProxyRaycaster, RayHits, UniformSampler
 from render.template_field import Background, TemplateField, TemplateFieldConfig
@@ -218,19 +219,21 @@ def load_template(run_dir, device: torch.device | None = None) -> tuple[Template
 def evaluate(
     field, background, sampler, views, device, chunk=16384, preview_dir=None, n_previews=0
 ):
-    """Renders held-out views -> (metrics dict, per-view PSNRs)."""
-    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+    """Renders held-out views -> metrics: on object pixels (the views' masks; the headline,
+    since a plain background inflates whole-image figures) and over whole images."""
+    from skimage.metrics import structural_similarity
 
     field.eval()
-    psnrs, ssims, samples, fg_psnrs = [], [], [], []
+    psnrs, ssims, samples, obj_psnrs, obj_ssims = [], [], [], [], []
     for i, (cam, image, mask) in enumerate(views):
         out = render_image(cam, field, sampler, background, chunk=chunk, device=device)
         pred = np.clip(out["rgb"], 0.0, 1.0)
-        psnrs.append(float(peak_signal_noise_ratio(image, pred, data_range=1.0)))
+        psnrs.append(psnr(pred, image))
         ssims.append(float(structural_similarity(image, pred, channel_axis=2, data_range=1.0)))
         samples.append(float(out["samples_per_pixel"]))
-        if mask is not None and mask.any():  # the object only: no free points for the background
-            fg_psnrs.append(psnr(pred[mask], image[mask]))
+        if mask is not None and mask.any():
+            obj_psnrs.append(masked_psnr(pred, image, mask))
+            obj_ssims.append(masked_ssim(pred, image, mask))
         if preview_dir is not None and i < n_previews:
             write_image(
                 Path(preview_dir) / (Path(cam.name).stem + ".png"),
@@ -239,9 +242,14 @@ def evaluate(
     field.train()
     if not psnrs:
         return {}
-    fg = {"heldout_psnr_foreground": float(np.mean(fg_psnrs))} if fg_psnrs else {}
+    obj = {}
+    if obj_psnrs:
+        obj = {
+            "heldout_psnr_object": float(np.mean(obj_psnrs)),
+            "heldout_ssim_object": float(np.mean(obj_ssims)),
+        }
     return {
-        **fg,
+        **obj,
         "heldout_psnr": float(np.mean(psnrs)),
         "heldout_ssim": float(np.mean(ssims)),
         "heldout_views": len(psnrs),
@@ -378,6 +386,10 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
             "total_seconds": time.perf_counter() - t_start,
             "rays_per_second": trainer.step * cfg.batch_rays / max(trainer.seconds, 1e-9),
             "samples_per_ray": sampler.samples_per_ray,
+            "samples_per_second": trainer.step
+            * cfg.batch_rays
+            * sampler.samples_per_ray
+            / max(trainer.seconds, 1e-9),
             "sampler": cfg.sampler,
             "train_rays_needing_field": len(pool.origins),
             "train_rays_total": pool.n_total,

@@ -35,15 +35,27 @@ def run(args: argparse.Namespace) -> int:
     metrics = fit_template(args.run, cfg, force=args.force, progress=not args.quiet)
     if metrics.get("skipped"):
         print(
-            f"fit: already done with these options ({metrics['iterations']} steps; held-out PSNR "
-            f"{metrics.get('heldout_psnr', float('nan')):.2f} dB) in {args.run / 'template'}; "
+            f"fit: already done with these options ({metrics['iterations']} steps; "
+            f"{_headline(metrics)}) in {args.run / 'template'}; "
             "--force to redo"
         )
         return 0
     print(
         f"fit: {metrics['iterations']} steps in {metrics['train_seconds']:.1f} s "
-        f"({metrics['rays_per_second']:.0f} rays/s, {metrics['samples_per_ray']} samples/ray); "
-        f"held-out PSNR {metrics.get('heldout_psnr', float('nan')):.2f} dB, "
-        f"SSIM {metrics.get('heldout_ssim', float('nan')):.3f} -> {args.run / 'template'}"
+        f"({metrics['rays_per_second']:.0f} rays/s x {metrics['samples_per_ray']} samples/ray "
+        f"= {metrics.get('samples_per_second', 0) / 1000:.0f}k samples/s); {_headline(metrics)} "
+        f"-> {args.run / 'template'}"
     )
     return 0
+
+
+def _headline(metrics: dict) -> str:
+    """Held-out PSNR/SSIM on object pixels (when the views have masks), whole images beside."""
+    nan = float("nan")
+    whole = f"PSNR {metrics.get('heldout_psnr', nan):.2f} dB, SSIM {metrics.get('heldout_ssim', nan):.3f}"
+    if "heldout_psnr_object" not in metrics:
+        return f"held-out {whole}"
+    return (
+        f"held-out object PSNR {metrics['heldout_psnr_object']:.2f} dB, "
+        f"SSIM {metrics['heldout_ssim_object']:.3f} (whole image: {whole})"
+    )

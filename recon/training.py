@@ -35,8 +35,8 @@ threads: RUNTIME_KEYS, they never change the result) and passes `**loop_options(
 
 Parameter groups are torch's dicts, each with a unique "name" and its "lr"; each group's learning
 rate is lr x factor(step), factor = `schedules[name]` or, by default, an exponential decay to
-`lr_final_factor` at `iterations` (`exponential_decay`). Adam (betas 0.9, 0.99) unless the stage
-passes another `optimizer` factory.
+`lr_final_factor` at `iterations` (`exponential_decay`). Adam (`adam`: betas 0.9, 0.99, the fused
+kernel) unless the stage passes another `optimizer` factory.
 
 State and checkpoints. `start(state)` names everything a checkpoint must hold besides the
 optimiser, the schedule, the loop's generator and the torch RNGs, which the trainer adds itself:
@@ -114,6 +114,14 @@ def loop_options(cfg: Any) -> dict:
     """The Trainer keyword arguments a stage config holds under the same names (LOOP_OPTIONS):
     `Trainer(directory, name, to_dict(cfg), RUNTIME_KEYS, **loop_options(cfg), ...)`."""
     return {name: getattr(cfg, name) for name in LOOP_OPTIONS if hasattr(cfg, name)}
+
+
+def adam(groups: list[dict]) -> torch.optim.Adam:
+    """Adam (betas 0.9, 0.99); the fused kernel when every parameter is on the CPU or a CUDA
+    device (on the CPU ~10x faster than the per-tensor loop for a hash table's millions of
+    rows; same update to float tolerance)."""
+    devices = {p.device.type for g in groups for p in g["params"]}
+    return torch.optim.Adam(groups, betas=(0.9, 0.99), fused=devices <= {"cpu", "cuda"})
 
 
 def exponential_decay(final_factor: float, iterations: int) -> Callable[[int], float]:
@@ -290,8 +298,7 @@ class Trainer:
         names = [g.get("name") for g in groups]
         if None in names or len(set(names)) != len(names):
             raise ValueError(f"every parameter group needs a unique 'name' (got {names})")
-        make = optimizer or (lambda g: torch.optim.Adam(g, betas=(0.9, 0.99)))
-        self.optimizer = make(groups)
+        self.optimizer = (optimizer or adam)(groups)
         schedules = schedules or {}
         default = exponential_decay(lr_final_factor, self.iterations)
         factors = [schedules.get(n, default) for n in names]

@@ -8,8 +8,10 @@ gradients flow both to the table and to the input positions (needed when a defor
 feeds the template).
 
 Variants (for speed, measured in bench/bench_hashgrid.py):
-- `gather="fused"`: the whole encoding as one custom autograd function (gather forward,
-  `index_add_` backward, analytic position gradient) -- the default and fastest on CPU;
+- `gather="fused"`: the whole encoding as one custom autograd function -- the default. On the
+  CPU (float32) it runs the native kernels of `render/csrc/hashgrid.cpp` (`render/native.py`;
+  ~5x faster); elsewhere, or with `native=False`, the torch version (gather forward,
+  `index_add_` backward, analytic position gradient), which is the tested reference;
 - `gather="index"`: `table[idx]` (autograd backward = index_put/accumulate);
 - `gather="embedding"`: `torch.nn.functional.embedding` (autograd's dense backward);
 - `sparse=True`: embedding with sparse gradients, to be stepped with `torch.optim.SparseAdam`;
@@ -24,6 +26,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from render import native
 
 PRIMES = (1, 2654435761, 805459861)
 
@@ -76,6 +80,49 @@ class _HashEncode(torch.autograd.Function):
         return grad_x, grad_table, None
 
 
+class _NativeHashEncode(torch.autograd.Function):
+    """`_HashEncode` through the C++ kernels (CPU, float32): x01 [N, 3], table [T, F] -> [N, L, F].
+
+    Nothing but the inputs is saved: the backward recomputes rows and weights.
+    """
+
+    @staticmethod
+    def forward(ctx, x01, table, grid):
+        lib = native.library()
+        x01, table = x01.contiguous(), table.contiguous()
+        n, n_lev, n_feat = x01.shape[0], grid.cfg.n_levels, table.shape[1]
+        out = torch.empty(n, n_lev, n_feat, dtype=table.dtype)
+        lib.hash_encode_forward(
+            native.pointer(x01), n, native.pointer(table), n_feat, n_lev, *grid._native_args(),
+            native.pointer(out), torch.get_num_threads(),
+        )  # fmt: skip
+        ctx.save_for_backward(x01, table)
+        ctx.grid = grid
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):  # [N, L, F]
+        x01, table = ctx.saved_tensors
+        grid, lib = ctx.grid, native.library()
+        grad_out = grad_out.contiguous()
+        n, n_lev, n_feat = grad_out.shape
+        threads = torch.get_num_threads()
+        grad_x = grad_table = None
+        if ctx.needs_input_grad[1]:
+            grad_table = torch.zeros_like(table)
+            lib.hash_encode_backward_table(
+                native.pointer(x01), n, n_feat, n_lev, *grid._native_args(),
+                native.pointer(grad_out), native.pointer(grad_table), threads,
+            )  # fmt: skip
+        if ctx.needs_input_grad[0]:
+            grad_x = torch.empty_like(x01)
+            lib.hash_encode_backward_x(
+                native.pointer(x01), n, native.pointer(table), n_feat, n_lev,
+                *grid._native_args(), native.pointer(grad_out), native.pointer(grad_x), threads,
+            )  # fmt: skip
+        return grad_x, grad_table, None
+
+
 @dataclass
 class HashGridConfig:
     """Shape of a multiresolution hash grid."""
@@ -111,6 +158,7 @@ class HashGrid(nn.Module):
         gather: str = "fused",
         sparse: bool = False,
         dense_mode: str = "gather",
+        native: bool = True,
     ):
         super().__init__()
         self.cfg = cfg = cfg or HashGridConfig()
@@ -122,6 +170,7 @@ class HashGrid(nn.Module):
         self.gather = gather
         self.sparse = sparse
         self.dense_mode = dense_mode
+        self.native = native  # use the C++ kernels when they apply (see `_use_native`)
         table_size = 2**cfg.log2_table
         self.resolutions = level_resolutions(cfg)
         sizes, dense = [], []
@@ -145,6 +194,28 @@ class HashGrid(nn.Module):
         self.register_buffer("_offsets", torch.tensor(offsets[:-1], dtype=torch.int64), False)
         self.register_buffer("_sizes", torch.tensor(sizes, dtype=torch.int64), False)
         self.n_dense = sum(dense)  # dense levels are the first ones (resolution grows)
+        self.register_buffer("_dense", torch.tensor(dense, dtype=torch.uint8), False)
+
+    def _native_args(self) -> tuple[int, int, int, int]:
+        """(res, offsets, dense pointers, log2_table) for the C++ kernels."""
+        for buf in (self._res_int, self._offsets, self._dense):
+            assert buf.device.type == "cpu" and buf.is_contiguous()
+        return (
+            self._res_int.data_ptr(),
+            self._offsets.data_ptr(),
+            self._dense.data_ptr(),
+            self.cfg.log2_table,
+        )
+
+    def _use_native(self, x: torch.Tensor) -> bool:
+        """The C++ kernels run for CPU float32 inputs when they are built (or can be)."""
+        return (
+            self.native
+            and x.device.type == "cpu"
+            and x.dtype == torch.float32
+            and self.table.dtype == torch.float32
+            and native.library() is not None
+        )
 
     # ---- indexing -------------------------------------------------------------------------
     def _level_indices(self, cell0: torch.Tensor, levels: slice, dense: bool) -> torch.Tensor:
@@ -224,7 +295,8 @@ class HashGrid(nn.Module):
         """x [N, 3] world points in [-bound, bound]^3 -> features [N, L * F]."""
         x01 = ((x + self.bound) / (2 * self.bound)).clamp(0.0, 1.0)  # [N, 3]
         if self.gather == "fused" and not self.sparse and self.dense_mode == "gather":
-            feats = _HashEncode.apply(x01, self.table, self)  # [N, L, F]
+            encode = _NativeHashEncode if self._use_native(x01) else _HashEncode
+            feats = encode.apply(x01, self.table, self)  # [N, L, F]
             return feats.reshape(x.shape[0], self.output_dim)
         parts = []
         if self.n_dense:

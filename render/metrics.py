@@ -22,3 +22,16 @@ def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
     """Intersection over union of two boolean masks [H, W] (1.0 when both are empty)."""
     union = np.logical_or(a, b).sum()
     return float(np.logical_and(a, b).sum() / union) if union else 1.0
+
+
+def masked_psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
+    """PSNR in dB over the pixels of `mask` [H, W] bool of images [H, W, C] in [0, 1]."""
+    return psnr(pred[mask], gt[mask])
+
+
+def masked_ssim(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
+    """Mean of scikit-image's SSIM map [H, W] over the pixels of `mask` (images [H, W, 3])."""
+    from skimage.metrics import structural_similarity
+
+    _, ssim_map = structural_similarity(gt, pred, channel_axis=2, data_range=1.0, full=True)
+    return float(ssim_map.mean(axis=2)[mask].mean())

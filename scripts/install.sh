@@ -37,4 +37,6 @@ if $PIP show -q opencv-python opencv-python-headless >/dev/null 2>&1; then
     exit 1
 fi
 "$VENV/bin/python" -c "import torch, open3d, cv2, pycolmap, trimesh, embreex, skimage; print('[install] ok: torch', torch.__version__, '| open3d', open3d.__version__, '| opencv', cv2.__version__, '| pycolmap', pycolmap.__version__)"
+# 7. The native hash-grid kernels (C++, ~1 s; without a compiler the torch path is used).
+"$VENV/bin/python" -m render.native
 touch "$VENV/.installed"
