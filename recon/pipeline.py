@@ -168,6 +168,18 @@ class ReconConfig:
     )
 
 
+def proxy_params(cfg: ReconConfig):
+    """The proxy_mesh stage's TSDF/cleaning settings (recon.proxy_mesh.ProxyParams)."""
+    from recon.proxy_mesh import ProxyParams
+
+    return ProxyParams(
+        voxel_size=cfg.tsdf_voxel_size,
+        trunc_voxels=cfg.tsdf_trunc_voxels,
+        target_triangles=cfg.target_triangles,
+        min_component=cfg.min_component,
+    )
+
+
 def stage_options(cfg: ReconConfig, stage: str, ignore_poses: bool = False) -> dict:
     """The options `stage` depends on: the ReconConfig fields whose help starts with
     "<stage>:" (proxy_mesh: "proxy:"), and --ignore-poses for the poses."""
@@ -610,30 +622,16 @@ class Pipeline:
         return {"depth_source": source, **stats}
 
     def stage_proxy_mesh(self) -> dict:
-        from recon.proxy_mesh import (
-            clean_mesh,
-            cull_outside_silhouettes,
-            fuse_tsdf,
-            mesh_stats,
-            write_mesh,
-        )
+        from recon.proxy_mesh import build_proxy, closing_depths, mesh_stats, write_mesh
 
         cams = self.run.load_cameras().frames
         depths = [read_depth(self.run.depth_path(c.name)) for c in cams]
         masks = self.masks_for(cams)
         closing = None
         if self.cfg.proxy_close_with_hull:
-            from recon.depth import raycast_views
-            from recon.proxy_mesh import closing_views
-
             verts, faces, _ = self._hull(cams, masks)
-            virtual = closing_views()
-            closing = list(zip(virtual, raycast_views(verts, faces, virtual), strict=True))
-        mesh = fuse_tsdf(
-            cams, depths, self.cfg.tsdf_voxel_size, self.cfg.tsdf_trunc_voxels, closing=closing
-        )
-        mesh = cull_outside_silhouettes(mesh, cams, masks)
-        mesh = clean_mesh(mesh, self.cfg.target_triangles, min_component=self.cfg.min_component)
+            closing = closing_depths(verts, faces)
+        mesh = build_proxy(cams, depths, masks, proxy_params(self.cfg), closing=closing)
         write_mesh(self.run.proxy_mesh, mesh)
         return {**mesh_stats(mesh), "proxy_closed_with_hull": closing is not None}
 

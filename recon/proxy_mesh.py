@@ -16,11 +16,51 @@ the largest connected component kept, quadric decimation to `target_triangles`, 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from tqdm import tqdm
 
 from render.cameras import Camera
 from render.errors import SineError
+
+
+@dataclass
+class ProxyParams:
+    """How depth maps become the proxy (`build_proxy`); recon's proxy options."""
+
+    voxel_size: float = 1 / 256  # TSDF voxel (run units; at least 1.5 pixel footprints)
+    trunc_voxels: float = 3.0  # TSDF truncation in voxels
+    target_triangles: int = 40_000  # quadric decimation target
+    min_component: float = 0.02  # parts kept: >= this fraction of the largest's triangles
+
+
+def build_proxy(
+    cameras: list[Camera],
+    depths: list[np.ndarray],
+    masks: list[np.ndarray] | None,
+    params: ProxyParams,
+    closing: list[tuple[Camera, np.ndarray]] | None = None,
+    carve: bool = False,
+):
+    """Depth maps [H, W] (camera z, 0 unknown) -> the cleaned proxy (legacy o3d mesh): TSDF
+    fusion (`fuse_tsdf`, closed by `closing`), floaters outside the masks culled (when masks
+    are given), `clean_mesh`."""
+    mesh = fuse_tsdf(
+        cameras, depths, params.voxel_size, params.trunc_voxels, closing=closing, carve=carve
+    )
+    if masks is not None:
+        mesh = cull_outside_silhouettes(mesh, cameras, masks)
+    return clean_mesh(mesh, params.target_triangles, min_component=params.min_component)
+
+
+def closing_depths(vertices: np.ndarray, faces: np.ndarray) -> list[tuple[Camera, np.ndarray]]:
+    """A closed mesh (the visual hull, an earlier proxy) seen from `closing_views`: the
+    (camera, depth) pairs `fuse_tsdf` closes unseen parts with."""
+    from recon.depth import raycast_views
+
+    virtual = closing_views()
+    return list(zip(virtual, raycast_views(vertices, faces, virtual), strict=True))
 
 
 def closing_views(n: int = 26, distance: float = 3.0, size: int = 256) -> list[Camera]:
@@ -49,6 +89,13 @@ def closing_views(n: int = 26, distance: float = 3.0, size: int = 256) -> list[C
     return cams
 
 
+def tsdf_voxel(cameras: list[Camera], voxel_size: float) -> float:
+    """The voxel `fuse_tsdf` uses: at least 1.5 pixel footprints at the object (distance to
+    the origin / fx), since finer voxels than the depth samples leave holes."""
+    footprint = float(np.median([np.linalg.norm(c.center) / c.fx for c in cameras]))
+    return max(voxel_size, 1.5 * footprint)
+
+
 def fuse_tsdf(
     cameras: list[Camera],
     depths: list[np.ndarray],
@@ -56,17 +103,20 @@ def fuse_tsdf(
     trunc_voxels: float = 4.0,
     closing: list[tuple[Camera, np.ndarray]] | None = None,
     real_weight: int = 4,
+    carve: bool = False,
 ):
     """TSDF-fuses float camera-z depth maps (run units) -> legacy o3d TriangleMesh.
 
-    The voxel is at least 1.5 pixel footprints at the object (distance to the origin / fx): finer
-    voxels than the depth samples leave the fused surface full of holes. `closing`: (camera,
+    The voxel: `tsdf_voxel`. `closing`: (camera,
     depth) pairs fused once each while every real view is fused `real_weight` times.
+    Depth 0 = unknown. `carve`: every block any view allocates is made first and the real views
+    are integrated into all of them, so the free space in front of their surfaces erases what
+    the closing views put there (a closing surface spanning a concavity the real depth sees
+    into); real depth np.inf = seen empty (carves, never makes surface).
     """
     import open3d as o3d
 
-    footprint = float(np.median([np.linalg.norm(c.center) / c.fx for c in cameras]))
-    voxel_size = max(voxel_size, 1.5 * footprint)
+    voxel_size = tsdf_voxel(cameras, voxel_size)
 
     device = o3d.core.Device("CPU:0")
     grid = o3d.t.geometry.VoxelBlockGrid(
@@ -80,23 +130,55 @@ def fuse_tsdf(
     )
     trunc_voxels = float(trunc_voxels)
     trunc = trunc_voxels * voxel_size
-    views = list(zip(cameras, depths, strict=True))
-    if closing:
-        views = views * real_weight + list(closing)
-    for cam, depth in tqdm(views, desc="tsdf", unit="view"):
-        d = np.ascontiguousarray(depth, np.float32)
+    real = [(cam, depth, True) for cam, depth in zip(cameras, depths, strict=True)]
+    virtual = [(cam, depth, False) for cam, depth in closing or []]
+    views = real * (real_weight if closing else 1) + virtual
+
+    def geometry(cam, depth):
+        """(K, extrinsic) as Open3D tensors for a depth map of cam's view."""
+        K = cam.resized(depth.shape[1], depth.shape[0]).K - _half_pixel()
+        ext = cam.world_to_camera
+        return o3d.core.Tensor(K, o3d.core.float64), o3d.core.Tensor(ext, o3d.core.float64)
+
+    def surface_blocks(cam, depth):
+        """Block coordinates around the finite depth (None when there is none)."""
+        d = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
         if not (d > 0).any():
-            continue
-        depth_t = o3d.t.geometry.Image(o3d.core.Tensor(d))
-        K = o3d.core.Tensor(cam.resized(d.shape[1], d.shape[0]).K - _half_pixel(), o3d.core.float64)
-        ext = o3d.core.Tensor(cam.world_to_camera, o3d.core.float64)
+            return None
+        image = o3d.t.geometry.Image(o3d.core.Tensor(d))
+        K, ext = geometry(cam, d)
         depth_max = float(d.max()) * 1.01 + trunc
-        coords = grid.compute_unique_block_coordinates(
-            depth_t, K, ext, 1.0, depth_max, trunc_voxels
+        return grid.compute_unique_block_coordinates(image, K, ext, 1.0, depth_max, trunc_voxels)
+
+    if carve:  # every view's blocks first: the real views are integrated into all of them
+        for cam, depth, _ in real + virtual:
+            coords = surface_blocks(cam, np.asarray(depth, np.float32))
+            if coords is not None:
+                grid.hashmap().activate(coords)
+        hashmap = grid.hashmap()
+        all_blocks = hashmap.key_tensor()[hashmap.active_buf_indices().to(o3d.core.int64)]
+    for cam, depth, is_real in tqdm(views, desc="tsdf", unit="view"):
+        d = np.ascontiguousarray(depth, np.float32)
+        if carve and is_real:
+            if not (d > 0).any():
+                continue
+            coords = all_blocks
+            d = np.where(np.isfinite(d), d, _FAR).astype(np.float32)
+        else:
+            coords = surface_blocks(cam, d)
+            if coords is None:
+                continue
+            d = np.where(np.isfinite(d), d, 0.0).astype(np.float32)
+        K, ext = geometry(cam, d)
+        depth_max = float(d.max()) * 1.01 + trunc
+        grid.integrate(
+            coords, o3d.t.geometry.Image(o3d.core.Tensor(d)), K, ext, 1.0, depth_max, trunc_voxels
         )
-        grid.integrate(coords, depth_t, K, ext, 1.0, depth_max, trunc_voxels)
     mesh = grid.extract_triangle_mesh(weight_threshold=1.0).to_legacy()
     return mesh
+
+
+_FAR = 1e4  # depth standing for "seen empty" (np.inf) when carving: beyond every block
 
 
 def _half_pixel() -> np.ndarray:

@@ -1,0 +1,280 @@
+"""The proxy refined by the template field (DESIGN.md section 4, the NeuS-style refine loop).
+
+The fitted field's depth is usually better than the proxy it was fitted around (visual hull +
+stereo miss concavities, stereo is noisy): render each training view's camera depth "z" and
+opacity with the field (`render.renderer.render_image`, through the fit's own sampler, so only
+the band the field was trained in is trusted), keep depth where the opacity is >= `min_opacity`
+(inside the capture mask when there are masks; optionally within `max_offset` of the current
+proxy along the ray), and fuse those depth maps with the same TSDF and cleaning as the proxy_mesh
+stage (`recon.proxy_mesh.build_proxy`). The current proxy, seen from the closing views, closes
+what the field did not see (the underside of a turntable object). With `carve` the field's views
+erase the old proxy where they see past it: every real view is integrated into all TSDF blocks,
+its free space in front of the surface and its mask-background pixels clearing what the old
+proxy put there (a hull spanning a concavity); without it the old surface survives wherever it
+lies beyond the truncation band of the new depth.
+
+`refine_proxy(...) -> (mesh, stats)`; `refine_run(run, field, background, sampler, cfg)` loads a
+run's training views, masks, proxy and proxy settings (recon_state.json) and calls it. Neither
+writes anything: the caller decides whether the new proxy replaces proxy_mesh.ply.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+
+from recon.proxy_mesh import ProxyParams, build_proxy, closing_depths, tsdf_voxel
+from recon.rundir import RunDir
+from render.cameras import Camera
+from render.configs import option
+from render.errors import SineError
+from render.metrics import mask_iou
+from render.raycast import MeshRaycaster, mesh_arrays
+from render.renderer import render_image
+
+EMPTY_OPACITY = 0.1  # without masks, pixels rendered below this opacity count as seen empty
+
+
+@dataclass
+class RefineConfig:
+    """Options of the proxy refine loop (a new proxy from the field's rendered depth)."""
+
+    refine_scale: float = option(
+        0.5, "refine: render the training views at this fraction of their size", low=0.05, high=1.0
+    )
+    refine_views: int = option(0, "refine: training views rendered, evenly spaced (0 = all)", low=0)
+    refine_min_opacity: float = option(
+        0.5, "refine: pixels rendered at least this opaque give depth", low=0.0, high=1.0
+    )
+    refine_max_offset: float = option(
+        0.0,
+        "refine: drop depth farther than this (run units, along the ray) from the current "
+        "proxy (0 = keep all)",
+        low=0.0,
+    )
+    refine_carve: bool = option(
+        True,
+        "refine: the field's views erase the old proxy where they see past it (free space in "
+        "front of their surface, mask background)",
+    )
+    refine_chunk: int = option(16384, "refine: rays per rendering chunk", low=1)
+
+
+def view_subset(n: int, count: int) -> list[int]:
+    """`count` indices evenly spaced over range(n) (all of them when count is 0 or >= n)."""
+    if count <= 0 or count >= n:
+        return list(range(n))
+    return sorted({int(round(x)) for x in np.linspace(0, n - 1, count)})
+
+
+def scaled(cam: Camera, mask: np.ndarray | None, scale: float):
+    """The camera and its mask [H, W] bool at `scale` of the size (mask by area, >= half)."""
+    if scale == 1.0:
+        return cam, mask
+    w, h = max(1, round(cam.width * scale)), max(1, round(cam.height * scale))
+    small = cam.resized(w, h)
+    if mask is not None:
+        mask = cv2.resize(mask.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) >= 0.5
+    return small, mask
+
+
+def field_depth(
+    field,
+    background,
+    sampler,
+    cam: Camera,
+    mask: np.ndarray | None,
+    cfg: RefineConfig,
+    proxy: MeshRaycaster | None = None,
+    device: torch.device | None = None,
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """One view -> camera-z depth [H, W] for `fuse_tsdf` (0 unknown; np.inf seen empty when
+    carving), the field's silhouette [H, W] bool and counts.
+
+    Kept: opacity >= min_opacity, inside the (1-pixel dilated) mask, within max_offset of the
+    proxy's hit along the ray (rays missing the proxy are kept). Seen empty: outside the dilated
+    mask, or (no mask) rendered below EMPTY_OPACITY.
+    """
+    out = render_image(cam, field, sampler, background, chunk=cfg.refine_chunk, device=device)
+    opacity, z, t = out["opacity"], out["z"], out["depth"]  # [H, W] each
+    silhouette = opacity >= cfg.refine_min_opacity
+    keep = silhouette & (z > 0)
+    near = None
+    if mask is not None:
+        near = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        keep &= near
+    shift = np.zeros(0, np.float32)
+    if proxy is not None:
+        t_proxy = proxy.cast_camera(cam).t.reshape(z.shape)
+        both = keep & np.isfinite(t_proxy)
+        shift = (t - t_proxy)[both]
+        if cfg.refine_max_offset > 0:
+            keep &= ~(np.isfinite(t_proxy) & (np.abs(t - t_proxy) > cfg.refine_max_offset))
+    depth = np.where(keep, z, 0.0).astype(np.float32)
+    if cfg.refine_carve:
+        empty = ~near if near is not None else opacity < EMPTY_OPACITY
+        depth[empty] = np.inf
+    counts = {
+        "kept": int(keep.sum()),
+        "silhouette": int(silhouette.sum()),
+        "mask": int(mask.sum()) if mask is not None else None,
+        "shift": shift,
+    }
+    return depth, silhouette, counts
+
+
+def silhouette_ious(mesh, cameras: list[Camera], masks: list[np.ndarray]) -> list[float]:
+    """IoU of the mesh's ray-cast silhouette with each view's mask (recon.report style)."""
+    caster = MeshRaycaster(mesh)
+    return [
+        mask_iou(mask, caster.cast_camera(cam).hit.reshape(cam.height, cam.width))
+        for cam, mask in zip(cameras, masks, strict=True)
+    ]
+
+
+def refine_proxy(
+    field,
+    background,
+    sampler,
+    cameras: list[Camera],
+    masks: list[np.ndarray] | None,
+    proxy_cfg: ProxyParams,
+    old_proxy,
+    cfg: RefineConfig | None = None,
+    closing_mesh=None,
+    device: torch.device | None = None,
+):
+    """A new proxy from the field's depth in `cameras` (training views, full size; `masks`
+    [H, W] bool per camera or None) -> (legacy o3d TriangleMesh, stats).
+
+    `old_proxy`: the current proxy (any mesh `render.raycast.mesh_arrays` takes): it closes
+    what the field did not see (unless `closing_mesh` is given, e.g. the visual hull), the
+    max_offset test is against it, and the stats compare with it. stats: silhouette IoU with the
+    masks (mean/min over all `cameras`, old and new), triangles, pixels kept, how far the
+    field's depth lies from the old proxy (median / 90th percentile of |t_field - t_proxy|),
+    the TSDF voxel used, seconds (rendering, fusion, total).
+    """
+    cfg = cfg or RefineConfig()
+    if masks is not None and len(masks) != len(cameras):
+        raise SineError("refine_proxy: one mask per camera (or no masks at all)")
+    t0 = time.perf_counter()
+    old_v, old_f = mesh_arrays(old_proxy)
+    if len(old_f) == 0:
+        raise SineError("the proxy to refine has no triangles; re-run `sine recon`")
+    caster = MeshRaycaster((old_v, old_f))
+    chosen = view_subset(len(cameras), cfg.refine_views)
+    small_cams, depths, fuse_masks, shifts = [], [], [], []
+    kept = silhouette_px = mask_px = 0
+    was_training = getattr(field, "training", False)
+    if hasattr(field, "eval"):
+        field.eval()
+    try:
+        for i in chosen:
+            cam, mask = scaled(cameras[i], None if masks is None else masks[i], cfg.refine_scale)
+            depth, silhouette, counts = field_depth(
+                field, background, sampler, cam, mask, cfg, caster, device
+            )
+            small_cams.append(cam)
+            depths.append(depth)
+            fuse_masks.append(mask if mask is not None else silhouette)
+            shifts.append(counts["shift"])
+            kept += counts["kept"]
+            silhouette_px += counts["silhouette"]
+            mask_px += counts["mask"] or 0
+    finally:
+        if was_training:
+            field.train()
+    t_render = time.perf_counter() - t0
+    if kept == 0:
+        raise SineError(
+            "the field renders no opaque pixel inside the masks: nothing to refine the proxy with"
+            " (is the template fitted?)"
+        )
+    cv, cf = mesh_arrays(closing_mesh) if closing_mesh is not None else (old_v, old_f)
+    mesh = build_proxy(
+        small_cams,
+        depths,
+        fuse_masks,
+        proxy_cfg,
+        closing=closing_depths(cv, cf),
+        carve=cfg.refine_carve,
+    )
+    t_total = time.perf_counter() - t0
+    shift = np.abs(np.concatenate(shifts)) if shifts else np.zeros(0)
+    stats = {
+        "refine_views": len(chosen),
+        "refine_scale": cfg.refine_scale,
+        "refine_voxel_size": tsdf_voxel(small_cams, proxy_cfg.voxel_size),
+        "refine_pixels_kept": kept,
+        "refine_kept_of_mask": kept / mask_px if mask_px else None,
+        "refine_kept_of_silhouette": kept / silhouette_px if silhouette_px else None,
+        "refine_shift_median": float(np.median(shift)) if len(shift) else None,
+        "refine_shift_p90": float(np.percentile(shift, 90)) if len(shift) else None,
+        "proxy_triangles_before": len(old_f),
+        "proxy_triangles_after": len(mesh.triangles),
+        "proxy_watertight_after": bool(mesh.is_watertight()),
+        "seconds_render": t_render,
+        "seconds_fuse": t_total - t_render,
+    }
+    if masks is not None:
+        before = silhouette_ious((old_v, old_f), cameras, masks)
+        after = silhouette_ious(mesh, cameras, masks)
+        stats.update(
+            silhouette_iou_before=float(np.mean(before)),
+            silhouette_iou_after=float(np.mean(after)),
+            silhouette_iou_min_before=float(np.min(before)),
+            silhouette_iou_min_after=float(np.min(after)),
+        )
+    stats["seconds"] = time.perf_counter() - t0
+    return mesh, stats
+
+
+def run_proxy_params(run: RunDir) -> ProxyParams:
+    """The proxy settings the run's proxy_mesh stage used (recon_state.json), else recon's
+    defaults."""
+    from recon.pipeline import ReconConfig, proxy_params
+    from render.io import read_json
+
+    cfg = ReconConfig()
+    path = run.root / "recon_state.json"
+    used = read_json(path).get("options", {}).get("proxy_mesh", {}) if path.is_file() else {}
+    for key, value in used.items():
+        if hasattr(cfg, key):
+            setattr(cfg, key, value)
+    return proxy_params(cfg)
+
+
+def refine_run(
+    run: RunDir,
+    field,
+    background,
+    sampler,
+    cfg: RefineConfig | None = None,
+    device: torch.device | None = None,
+):
+    """`refine_proxy` on a run: its training views (masks when every one has a mask), its
+    proxy_mesh.ply and proxy settings -> (mesh, stats). Writes nothing."""
+    import open3d as o3d
+
+    from render.io import read_mask
+
+    cams = [c for c in run.load_cameras().frames if c.split == "train"]
+    if not cams:
+        raise SineError(f"{run.cameras} has no training views")
+    paths = [run.mask_path(c.name) for c in cams]
+    masks = [read_mask(p) for p in paths] if all(p.is_file() for p in paths) else None
+    if masks is not None:
+        cams = [
+            c if m.shape == (c.height, c.width) else c.resized(m.shape[1], m.shape[0])
+            for c, m in zip(cams, masks, strict=True)
+        ]
+    if not run.proxy_mesh.is_file():
+        raise SineError(f"{run.proxy_mesh} not found; run `sine recon` first")
+    old = o3d.io.read_triangle_mesh(str(run.proxy_mesh))
+    return refine_proxy(
+        field, background, sampler, cams, masks, run_proxy_params(run), old, cfg, device=device
+    )
