@@ -9,9 +9,15 @@ import torch
 from scene_helpers import ring, sphere_depths, sphere_masks
 
 from recon.proxy_mesh import ProxyParams, closing_depths, fuse_tsdf, tsdf_voxel
-from recon.proxy_refine import RefineConfig, refine_proxy, silhouette_ious, view_subset
+from recon.proxy_refine import (
+    RefineConfig,
+    ray_depths,
+    refine_proxy,
+    silhouette_ious,
+    view_subset,
+)
 from render.raycast import mesh_arrays
-from render.sampler import BandSampler, ProxyRaycaster
+from render.sampler import BandSampler, ProxyRaycaster, UniformSampler
 
 R = 0.5  # the true sphere's radius
 
@@ -49,6 +55,29 @@ def test_view_subset_is_evenly_spaced():
     assert view_subset(9, 3) == [0, 4, 8]
 
 
+def test_ray_depths_of_a_half_space_of_constant_density():
+    """Density 10 for x > 0, a ray along +x from x = -2: the unit sphere spans t in [1, 3], the
+    opacity accumulated by t is 1 - exp(-10 (t - 2)), so it reaches 0.5 at 2 + ln 2 / 10 and
+    0.2 at 2 + ln 1.25 / 10; the expected distance is 2 + 1/10 (the tail beyond t = 3 weighs
+    e^-10)."""
+
+    def field(x, d):
+        return {"sigma": torch.where(x[:, 0] > 0, 10.0, 0.0), "rgb": torch.zeros_like(x)}
+
+    origins = torch.tensor([[-2.0, 0.0, 0.0], [-2.0, 5.0, 0.0]])  # the second misses
+    dirs = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    sampler = UniformSampler(n_coarse=256, n_importance=0)
+    for level, expected in ((0.5, 2 + np.log(2) / 10), (0.2, 2 + np.log(1.25) / 10)):
+        out = ray_depths(field, sampler, origins, dirs, level)
+        assert out["level"][0].item() == pytest.approx(expected, abs=2e-3)
+        assert out["opacity"][0].item() == pytest.approx(1.0, abs=1e-4)
+        assert out["expected"][0].item() == pytest.approx(2.1, abs=4e-3)
+        assert out["level"][1].item() == float("inf") and out["opacity"][1].item() == 0.0
+    half = ray_depths(lambda x, d: {"sigma": 0.1 * field(x, d)["sigma"]}, sampler, origins, dirs)
+    assert half["opacity"][0].item() == pytest.approx(1 - np.exp(-1.0), abs=1e-3)
+    assert half["level"][0].item() == pytest.approx(2 + np.log(2), abs=2e-3)
+
+
 def test_bad_proxy_moves_onto_the_field_surface():
     """An ellipsoid proxy (semi-axes 0.62, 0.55, 0.45 around a ball of radius 0.5): its
     vertices lie 0.046 from the sphere on average (0.12 at the long axis' ends); the field's
@@ -61,7 +90,7 @@ def test_bad_proxy_moves_onto_the_field_surface():
     assert radial_error(bad).mean() == pytest.approx(0.046, abs=0.002)
     sampler = BandSampler(ProxyRaycaster(bad, inflate=0.15), n_band=32, n_coarse=4)
     mesh, stats = refine_proxy(
-        SphereField(), None, sampler, cams, masks, ProxyParams(), bad, RefineConfig(1.0)
+        SphereField(), sampler, cams, masks, ProxyParams(), bad, RefineConfig(1.0)
     )
     assert radial_error(mesh).mean() < 0.018
     assert np.percentile(radial_error(mesh), 95) < 0.035  # one voxel
@@ -84,7 +113,7 @@ def test_half_scale_and_a_subset_of_views_still_refine():
     bad = ellipsoid()
     sampler = BandSampler(ProxyRaycaster(bad, inflate=0.15), n_band=32, n_coarse=4)
     cfg = RefineConfig(refine_scale=0.5, refine_views=8)
-    mesh, stats = refine_proxy(SphereField(), None, sampler, cams, masks, ProxyParams(), bad, cfg)
+    mesh, stats = refine_proxy(SphereField(), sampler, cams, masks, ProxyParams(), bad, cfg)
     assert stats["refine_views"] == 8
     assert stats["refine_voxel_size"] == pytest.approx(1.5 * 2.6 / 55, rel=0.01)
     assert radial_error(mesh).mean() < 0.036 < radial_error(bad).mean()
