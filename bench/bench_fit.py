@@ -8,8 +8,9 @@ Cases (each reconstructed once into --out/CASE/run the way a user would, then re
   temple    `sine recon` of ../shared/data/middlebury-templeSparseRing (known poses)
 
 Each variant is a set of `sine fit` options (`--variant NAME:key=value,key=value`; `native=0`
-runs the torch hash-grid path instead of the C++ kernels) fitted in its own process (so peak
-memory is per variant) into its own copy of the run. The table gives held-out PSNR on object
+runs the torch hash-grid path instead of the C++ kernels; `code=DIR` imports the project from
+DIR, e.g. a `git worktree` of an older commit, for a before/after on the same machine) fitted in
+its own process (so peak memory is per variant) into its own copy of the run. The table gives held-out PSNR on object
 pixels (the headline; masks from the capture) and over the whole image, SSIM, train seconds,
 rays/s, samples/ray, samples/s and peak RSS; `--out/results.json` keeps every number and
 `--out/CASE_VARIANT.png` a held-out view (render | truth).
@@ -75,6 +76,9 @@ def worker(run: Path, opts: dict[str, str], preview: Path) -> None:
     """One fit in this process (a fresh copy of the run); prints a RESULT line."""
     from dataclasses import fields
 
+    if "code" in opts:  # another checkout of the project (e.g. the commit before a change)
+        sys.path.insert(0, str(Path(opts["code"]).resolve()))
+
     import numpy as np
 
     from recon.fit import FitConfig, fit_template
@@ -82,7 +86,7 @@ def worker(run: Path, opts: dict[str, str], preview: Path) -> None:
     types = {f.name: f.type for f in fields(FitConfig)}
     kwargs = {}
     for key, value in opts.items():
-        if key == "native":
+        if key in ("native", "code"):
             continue
         kind = types[key]
         kwargs[key] = {"int": int, "float": float, "bool": lambda v: v in ("1", "true")}.get(
@@ -97,6 +101,9 @@ def worker(run: Path, opts: dict[str, str], preview: Path) -> None:
     if shots:
         shutil.copy(shots[0], preview)
     m = {k: v for k, v in m.items() if isinstance(v, int | float | str | bool) or v is None}
+    if "heldout_psnr_foreground" in m:  # older checkouts' name of the object PSNR
+        m["heldout_psnr_object"] = m.pop("heldout_psnr_foreground")
+    m.setdefault("samples_per_second", m["rays_per_second"] * m["samples_per_ray"])
     print("RESULT " + json.dumps(m, default=lambda v: float(np.asarray(v))))
 
 

@@ -19,7 +19,7 @@ RUN/template.partial/ and, once finished, moves that to RUN/template/:
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -38,13 +38,33 @@ from render.renderer import render_image, render_rays
 from render.sampler import BandSampler, ProxyRaycaster, RayHits, UniformSampler
 from render.template_field import Background, TemplateField, TemplateFieldConfig
 
+# What `--preset` sets (options given explicitly win). Timings: 2 cores, 36 views of 256 px.
+PRESETS: dict[str, dict[str, int]] = {
+    "fast": {"iterations": 300, "batch_rays": 1024},  # ~30 s: tests, demos, a first look
+    "default": {"iterations": 1500, "batch_rays": 2048},  # <= 5 min
+    "quality": {"iterations": 4000, "batch_rays": 4096},  # <= 20 min
+}
+
 
 @dataclass
 class FitConfig(LoopOptions):
     """Options of `sine fit` (template radiance field)."""
 
-    iterations: int = option(200, "training steps (300-1000 sharpen colour detail)", low=1)
-    batch_rays: int = option(2048, "rays per step (only rays that hit the inflated proxy)", low=1)
+    preset: str = option(
+        "default",
+        "time/quality trade-off: fast (~30 s), default (<= 5 min), quality (<= 20 min) on 2 "
+        "cores for 36 views of 256 px; sets --iterations and --batch-rays unless given",
+        choices=list(PRESETS),
+    )
+    iterations: int | None = option(
+        None, "training steps (None: the preset's: fast 300, default 1500, quality 4000)", low=1
+    )
+    batch_rays: int | None = option(
+        None,
+        "rays per step, only rays that hit the inflated proxy (None: the preset's: fast 1024, "
+        "default 2048, quality 4096)",
+        low=1,
+    )
     lr_grid: float = option(2e-2, "Adam learning rate of the hash table", low=0.0)
     lr_mlp: float = option(1e-2, "Adam learning rate of the MLP heads", low=0.0)
     lr_final_factor: float = option(
@@ -71,6 +91,19 @@ class FitConfig(LoopOptions):
     band_width: float = option(0.04, "band half-width d and proxy inflation, in run units", low=0.0)
     uniform_coarse: int = option(64, "stratified coarse samples (uniform sampler)", low=1)
     mask_weight: float = option(0.1, "weight of the opacity-vs-mask BCE loss (0: off)", low=0.0)
+    appearance_dim: int = option(
+        0,
+        "per-view appearance code length (0: off); for lights that turn with the camera "
+        "(turntables): held-out views use the codes of their nearest training views",
+        low=0,
+    )
+    error_sampling: float = option(
+        0.5,
+        "fraction of each batch drawn in proportion to the rays' last squared errors "
+        "(silhouettes and fine texture get more rays; 0: all uniform)",
+        low=0.0,
+        high=1.0,
+    )
     background: str = option(
         "auto",
         "background colour: auto (from masks), white, black, learn",
@@ -80,6 +113,15 @@ class FitConfig(LoopOptions):
     seed: int = option(0, "random seed (ray batches, jitter, initialisation)", low=0)
     eval_views: int = option(0, "held-out views to render for the metrics (0: all)", low=0)
     eval_chunk: int = option(16384, "rays per chunk when rendering held-out views", low=1)
+
+
+def resolve_preset(cfg: FitConfig) -> FitConfig:
+    """`cfg` with the options left at None taken from its preset."""
+    preset = PRESETS.get(cfg.preset)
+    if preset is None:
+        raise SineError(f"--preset must be one of {', '.join(PRESETS)} (got {cfg.preset!r})")
+    chosen = {k: v for k, v in preset.items() if getattr(cfg, k) is None}
+    return replace(cfg, **chosen)
 
 
 # ---- data ---------------------------------------------------------------------------------
@@ -132,13 +174,43 @@ class RayPool:
     n_total: int  # all training rays, hit or not
     has_masks: bool
     miss_rgb: torch.Tensor  # [Q, 3] colours of rays that miss (for a learned background)
+    errors: torch.Tensor  # [P] each ray's squared error when it was last trained on
+    view: torch.Tensor  # [P] int64 index of the ray's training view
+
+
+class RaySelector:
+    """Draws each step's rays: `uniform` of them uniformly, the rest in proportion to the rays'
+    last errors (`pool.errors`, updated by `record`), so the rays still wrong -- silhouettes,
+    fine texture -- come back more often. Rays never trained on keep the initial error, the
+    mean error the field starts with, so they are drawn like average ones."""
+
+    def __init__(self, pool: RayPool, error_fraction: float, generator: torch.Generator):
+        self.pool, self.generator = pool, generator
+        self.error_fraction = error_fraction
+
+    def draw(self, n: int) -> torch.Tensor:
+        """Indices [n] into the pool."""
+        n_error = int(round(n * self.error_fraction))
+        n_pool = len(self.pool.errors)
+        idx = torch.randint(n_pool, (n - n_error,), generator=self.generator)
+        if n_error:
+            weights = self.pool.errors.cpu()
+            by_error = torch.multinomial(
+                weights, n_error, replacement=True, generator=self.generator
+            )
+            idx = torch.cat([idx, by_error])
+        return idx.to(self.pool.errors.device)
+
+    def record(self, idx: torch.Tensor, errors: torch.Tensor) -> None:
+        """Stores the squared errors [n] of the rays `idx` [n] just trained on."""
+        self.pool.errors[idx] = errors.detach().clamp_min(1e-6)
 
 
 def build_ray_pool(views, sampler, device: torch.device) -> RayPool:
-    o_all, d_all, c_all, m_all, h_all, miss = [], [], [], [], [], []
+    o_all, d_all, c_all, m_all, h_all, miss, v_all = [], [], [], [], [], [], []
     n_total = 0
     has_masks = all(m is not None for _, _, m in views)
-    for cam, image, mask in views:
+    for i, (cam, image, mask) in enumerate(views):
         o, d = cam.rays()
         o, d = torch.from_numpy(o).to(device), torch.from_numpy(d).to(device)
         hits = sampler.cast(o, d)
@@ -150,11 +222,10 @@ def build_ray_pool(views, sampler, device: torch.device) -> RayPool:
         d_all.append(d[hit])
         c_all.append(rgb[hit])
         m_all.append(m[hit] if m is not None else torch.ones(int(hit.sum()), device=device))
+        v_all.append(torch.full((int(hit.sum()),), i, dtype=torch.int64, device=device))
         h_all.append(hits[hit])
         miss.append(rgb[~hit][:: max(1, int((~hit).sum()) // 2000 + 1)])
-    hits = RayHits(
-        *(torch.cat([getattr(h, k) for h in h_all]) for k in ("t_hit", "t_inflated", "near", "far"))
-    )
+    hits = RayHits.cat(h_all)
     pool = RayPool(
         torch.cat(o_all),
         torch.cat(d_all),
@@ -164,7 +235,10 @@ def build_ray_pool(views, sampler, device: torch.device) -> RayPool:
         n_total,
         has_masks,
         torch.cat(miss),
+        torch.empty(0),
+        torch.cat(v_all),
     )
+    pool.errors = torch.full((len(pool.origins),), 0.05, device=device)  # [P]
     if len(pool.origins) == 0:
         raise SineError(
             "no training ray hits the proxy mesh: check proxy_mesh.ply and cameras.json"
@@ -185,11 +259,12 @@ def make_sampler(cfg: FitConfig, run: RunDir):
     )
 
 
-def field_config(cfg: FitConfig) -> TemplateFieldConfig:
+def field_config(cfg: FitConfig, n_views: int = 0) -> TemplateFieldConfig:
     grid = HashGridConfig(
         n_levels=cfg.levels, log2_table=cfg.log2_table, max_resolution=cfg.max_resolution
     )
-    return TemplateFieldConfig(grid=grid)
+    views = n_views if cfg.appearance_dim else 0
+    return TemplateFieldConfig(grid=grid, appearance_dim=cfg.appearance_dim, appearance_views=views)
 
 
 def load_fitted(run_dir, device: torch.device | None = None):
@@ -215,6 +290,18 @@ def load_template(run_dir, device: torch.device | None = None) -> tuple[Template
     return field, bg
 
 
+def store_appearance(field: TemplateField, codes: torch.Tensor, cameras) -> None:
+    """Keeps the fitted codes [V, A] and their views' directions in the field; the default
+    code becomes their mean (a neutral light)."""
+    centers = torch.tensor(
+        np.stack([c.camera_to_world[:3, 3] for c in cameras]), dtype=torch.float32
+    )
+    with torch.no_grad():
+        field.view_codes.copy_(codes)
+        field.view_dirs.copy_(torch.nn.functional.normalize(centers, dim=1))
+        field.appearance.copy_(codes.mean(0))
+
+
 # ---- metrics ------------------------------------------------------------------------------
 def evaluate(
     field, background, sampler, views, device, chunk=16384, preview_dir=None, n_previews=0
@@ -225,7 +312,11 @@ def evaluate(
 
     field.eval()
     psnrs, ssims, samples, obj_psnrs, obj_ssims = [], [], [], [], []
+    neutral = field.appearance.clone() if field.cfg.appearance_dim else None
     for i, (cam, image, mask) in enumerate(views):
+        if neutral is not None:  # the light of the nearest training views
+            center = torch.as_tensor(cam.camera_to_world[:3, 3], device=neutral.device)
+            field.appearance.copy_(field.code_for_camera(center))
         out = render_image(cam, field, sampler, background, chunk=chunk, device=device)
         pred = np.clip(out["rgb"], 0.0, 1.0)
         psnrs.append(psnr(pred, image))
@@ -239,6 +330,8 @@ def evaluate(
                 Path(preview_dir) / (Path(cam.name).stem + ".png"),
                 np.concatenate([pred, image], axis=1),
             )
+    if neutral is not None:
+        field.appearance.copy_(neutral)
     field.train()
     if not psnrs:
         return {}
@@ -279,7 +372,7 @@ def fit_template(
 
     `stop_at` ends this call after that step, with a checkpoint (as if interrupted).
     """
-    cfg = validate(cfg or FitConfig())
+    cfg = validate(resolve_preset(cfg or FitConfig()))
     run = RunDir(run_dir)
     run.require("cameras")
     require_trusted_poses(run)
@@ -317,23 +410,35 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     pool = build_ray_pool(train_views, sampler, device)
 
     torch.manual_seed(cfg.seed)
-    field = TemplateField(field_config(cfg)).to(device)
+    field = TemplateField(field_config(cfg, len(train_views))).to(device)
+    codes = torch.nn.Parameter(torch.zeros(len(train_views), cfg.appearance_dim, device=device))
     background = Background(bg_color, learnable=bg_learn).to(device)
     groups = field.param_groups(cfg.lr_grid, cfg.lr_mlp)
     if bg_learn:
         groups.append(
             {"params": list(background.parameters()), "lr": cfg.lr_mlp, "name": "background"}
         )
+    if cfg.appearance_dim:
+        groups.append({"params": [codes], "lr": cfg.lr_mlp, "name": "appearance"})
     trainer.start(
-        {"field": field, "background": background}, groups, lr_final_factor=cfg.lr_final_factor
+        {"field": field, "background": background, "ray_errors": pool.errors, "codes": codes},
+        groups,
+        lr_final_factor=cfg.lr_final_factor,
     )
     generator = trainer.generator
-    n_pool = len(pool.origins)
+    selector = RaySelector(pool, cfg.error_sampling, generator)
 
     def step(_: int) -> dict[str, torch.Tensor]:
-        idx = torch.randint(n_pool, (cfg.batch_rays,), generator=generator).to(device)
+        idx = selector.draw(cfg.batch_rays)
+        query = field
+        if cfg.appearance_dim:  # every pool ray hits: samples come ray by ray, in order
+            ray_codes = codes[pool.view[idx]]  # [n, A]
+
+            def query(x, d):
+                return field(x, d, ray_codes.repeat_interleave(len(x) // len(ray_codes), 0))
+
         out = render_rays(
-            field,
+            query,
             pool.origins[idx],
             pool.dirs[idx],
             sampler,
@@ -342,7 +447,9 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
             perturb=True,
             generator=generator,
         )
-        terms = {"rgb": torch.mean((out["rgb"] - pool.rgb[idx]) ** 2)}
+        ray_errors = ((out["rgb"] - pool.rgb[idx]) ** 2).mean(dim=1)  # [n]
+        selector.record(idx, ray_errors)
+        terms = {"rgb": ray_errors.mean()}
         if cfg.mask_weight > 0 and pool.has_masks:
             acc = out["opacity"].clamp(1e-5, 1 - 1e-5)
             bce = torch.nn.functional.binary_cross_entropy(acc, pool.mask[idx])
@@ -355,6 +462,8 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     field.train()
     if not trainer.run(step, stop_at):  # stopped early on purpose
         return {"step": trainer.step}
+    if cfg.appearance_dim:
+        store_appearance(field, codes.detach(), [cam for cam, _, _ in train_views])
     for entry in trainer.log:
         entry["psnr"] = psnr_of_mse(entry["rgb"])
 

@@ -5,8 +5,11 @@
   hit on both, and the ray's interval inside the bounding sphere. `update_vertices` rebuilds both
   scenes from warped vertices (milliseconds), for the edited space.
 - `BandSampler`: for rays that hit the inflated proxy, `n_band` bins in `[t_hit - d, t_hit + d]`
-  (or `[t_inflated, t_inflated + 2d]` when only the inflated copy is hit) merged with `n_coarse`
-  bins over the ray-in-sphere interval; rays that miss get the background and cost nothing.
+  or, when only the inflated copy is hit (rays passing by the silhouette), over the stretch the
+  ray spends inside the inflated copy, `[t_inflated, t_exit]`: a ray grazing a part of radius r
+  runs ~2 sqrt(2 r d) inside it and comes closest to the proxy in the middle, well past
+  `t_inflated + 2d`. Merged with `n_coarse` bins over the ray-in-sphere interval; rays that
+  miss get the background and cost nothing.
 - `UniformSampler`: the paper's baseline, `n_coarse` stratified samples over the ray-in-sphere
   interval + `n_importance` samples drawn from the coarse weights (`sample_pdf`).
 
@@ -32,16 +35,27 @@ class RayHits:
     t_inflated: torch.Tensor  # [R] first hit on the inflated proxy (inf where missed)
     near: torch.Tensor  # [R] entry into the bounding sphere (0 if the origin is inside)
     far: torch.Tensor  # [R] exit from the bounding sphere (near where missed)
+    t_exit: torch.Tensor | None = None  # [R] where a ray that misses the proxy leaves the
+    # inflated copy again (inf elsewhere); None: unknown (the band is then 2d long)
 
     @property
     def hit(self) -> torch.Tensor:  # [R] bool: the ray needs the field
         return torch.isfinite(self.t_inflated) | torch.isfinite(self.t_hit)
 
+    def _fields(self) -> tuple:
+        return (self.t_hit, self.t_inflated, self.near, self.far, self.t_exit)
+
     def __getitem__(self, idx) -> RayHits:
-        return RayHits(self.t_hit[idx], self.t_inflated[idx], self.near[idx], self.far[idx])
+        return RayHits(*(None if v is None else v[idx] for v in self._fields()))
 
     def to(self, device) -> RayHits:
-        return RayHits(*(v.to(device) for v in (self.t_hit, self.t_inflated, self.near, self.far)))
+        return RayHits(*(None if v is None else v.to(device) for v in self._fields()))
+
+    @staticmethod
+    def cat(parts: list[RayHits]) -> RayHits:
+        """Concatenates hits of several ray batches."""
+        columns = zip(*(p._fields() for p in parts), strict=True)
+        return RayHits(*(None if None in c else torch.cat(c) for c in columns))
 
 
 def sphere_interval(
@@ -94,13 +108,20 @@ class ProxyRaycaster:
         """origins [R, 3], unit dirs [R, 3] -> RayHits (on the rays' device)."""
         o, d = rays_numpy(origins, dirs)
         t_hit = torch.from_numpy(self._scene.cast(o, d).t)
+        t_exit = torch.full_like(t_hit, float("inf"))
         if self._inflated is not None:
             t_inf = torch.from_numpy(self._inflated.cast(o, d).t)
+            passing = torch.isfinite(t_inf) & ~torch.isfinite(t_hit)  # by the silhouette
+            if passing.any():  # leave the inflated copy: its next hit along the ray
+                sel = passing.numpy()
+                start = t_inf[passing].numpy() + 1e-5
+                t_next = self._inflated.cast(o[sel] + d[sel] * start[:, None], d[sel]).t
+                t_exit[passing] = torch.from_numpy(start + t_next)
         else:
             t_inf = t_hit.clone()
         device = origins.device
         near, far, _ = sphere_interval(origins, dirs, self.radius)
-        return RayHits(t_hit.to(device), t_inf.to(device), near, far)
+        return RayHits(t_hit.to(device), t_inf.to(device), near, far, t_exit.to(device))
 
 
 def _stratified(lo: torch.Tensor, hi: torch.Tensor, n: int) -> torch.Tensor:
@@ -148,7 +169,11 @@ class BandSampler:
         t0 = torch.where(direct, hits.t_hit - d, hits.t_inflated)
         t0 = torch.where(torch.isfinite(t0), t0, hits.near)
         lo = torch.maximum(t0, hits.near)
-        hi = torch.minimum(t0 + 2 * d, hits.far)
+        t1 = t0 + 2 * d
+        if hits.t_exit is not None:  # passing by: the whole stretch inside the inflated copy
+            passing = ~direct & torch.isfinite(hits.t_exit)
+            t1 = torch.where(passing, torch.maximum(hits.t_exit, t1), t1)
+        hi = torch.minimum(t1, hits.far)
         hi = torch.maximum(hi, lo + 1e-4)
         return lo, hi
 

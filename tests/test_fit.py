@@ -159,3 +159,73 @@ def test_missing_proxy_mesh_says_run_recon(tiny_run, tmp_path):
     run.proxy_mesh.unlink()
     with pytest.raises(SineError, match="sine recon"):
         fit_template(run.root, FitConfig(iterations=1, **TINY), progress=False)
+
+
+def test_object_metrics_on_hand_made_images():
+    from render.metrics import masked_psnr, masked_ssim, psnr
+
+    gt = np.full((32, 32, 3), 0.5, np.float32)
+    mask = np.zeros((32, 32), bool)
+    mask[:, :16] = True
+    pred = gt.copy()
+    pred[mask] += 0.1  # error 0.1 on the object, none on the background
+    assert masked_psnr(pred, gt, mask) == pytest.approx(20.0, abs=1e-4)  # 10 log10(1 / 0.01)
+    assert psnr(pred, gt) == pytest.approx(10 * np.log10(1 / 0.005), abs=1e-4)  # half the pixels
+    assert masked_ssim(gt, gt, mask) == pytest.approx(1.0)
+    wrong_background = gt.copy()
+    wrong_background[~mask] = 0.0  # columns >= 16 change
+    far = np.zeros_like(mask)
+    far[:, :6] = True  # beyond SSIM's 7 px window from column 16: unchanged
+    assert masked_ssim(wrong_background, gt, far) == pytest.approx(1.0)
+    assert masked_ssim(wrong_background, gt, mask) < 0.95
+
+
+def test_ray_selector_draws_in_proportion_to_the_last_errors():
+    from recon.fit import RayPool, RaySelector
+
+    n = 1000
+    pool = RayPool(*([None] * 8), errors=torch.full((n,), 1e-4), view=None)
+    pool.errors[7] = 1.0  # one ray still wrong: ~0.9 of the error draws
+    selector = RaySelector(pool, 0.5, torch.Generator().manual_seed(0))
+    idx = selector.draw(2000)
+    assert idx.shape == (2000,) and int(idx.max()) < n
+    uniform, by_error = idx[:1000], idx[1000:]
+    assert (uniform == 7).sum() < 10  # 1 expected
+    assert 850 < int((by_error == 7).sum()) < 950  # 1000 * 1 / (1 + 999e-4) = 909 expected
+    selector.record(torch.tensor([7]), torch.tensor([0.0]))
+    assert pool.errors[7] == 1e-6  # fixed: back to a floor, no longer drawn
+    assert (RaySelector(pool, 0.0, torch.Generator().manual_seed(0)).draw(50) < n).all()
+
+
+def test_presets_fill_only_the_options_not_given():
+    from recon.fit import PRESETS, resolve_preset
+
+    assert PRESETS["fast"]["iterations"] < PRESETS["default"]["iterations"]
+    assert PRESETS["default"]["iterations"] < PRESETS["quality"]["iterations"]
+    fast = resolve_preset(FitConfig(preset="fast"))
+    assert (fast.iterations, fast.batch_rays) == (300, 1024)
+    default = resolve_preset(FitConfig())
+    assert (default.iterations, default.batch_rays) == (1500, 2048)
+    mixed = resolve_preset(FitConfig(preset="quality", iterations=7))
+    assert (mixed.iterations, mixed.batch_rays) == (7, 4096)
+    with pytest.raises(SineError, match="--preset"):
+        resolve_preset(FitConfig(preset="slow"))
+
+
+def test_appearance_codes_are_fitted_and_blended_for_held_out_views(tiny_run, tmp_path):
+    run = _copy(tiny_run, tmp_path / "run")
+    cfg = FitConfig(iterations=30, appearance_dim=4, **TINY)
+    metrics = fit_template(run.root, cfg, progress=False)
+    assert np.isfinite(metrics["heldout_psnr"])
+    field, _ = load_template(run.root)
+    codes, dirs = field.view_codes, field.view_dirs
+    assert codes.shape == (8, 4) and codes.abs().sum() > 0  # 8 training views, learnt
+    torch.testing.assert_close(field.appearance, codes.mean(0))
+    torch.testing.assert_close(dirs.norm(dim=1), torch.ones(8))
+    # a training view's own direction gives its own code; halfway between two views, the mean
+    torch.testing.assert_close(field.code_for_camera(3 * dirs[2]), codes[2])
+    halfway = torch.nn.functional.normalize(dirs[2] + dirs[3], dim=0)
+    torch.testing.assert_close(field.code_for_camera(halfway), (codes[2] + codes[3]) / 2)
+    x, d = torch.zeros(2, 3), torch.tensor([[0.0, 0.0, 1.0]] * 2)
+    by_code = field(x, d, codes[:2])["rgb"]
+    assert not torch.allclose(by_code[0], by_code[1])  # the colour head reads the code
