@@ -109,8 +109,9 @@ def ray_depths(
     included), without gradients.
 
     The level crossing is interpolated inside the sample's bin (weight spread evenly over
-    [t - delta/2, t + delta/2]). A soft density (a ramp behind the surface) puts the expected
-    depth behind the surface; the median (level 0.5) lies nearer its onset.
+    [t - delta/2, t + delta/2], exact for midpoint samples in their bins). A soft density (a
+    ramp behind the surface) puts the expected and the median (level 0.5) depth behind the
+    surface; lower levels lie nearer its onset (module doc).
     """
     from render import volume
 

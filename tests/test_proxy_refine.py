@@ -8,14 +8,19 @@ import pytest
 import torch
 from scene_helpers import ring, sphere_depths, sphere_masks
 
-from recon.proxy_mesh import ProxyParams, closing_depths, fuse_tsdf, tsdf_voxel
+from recon.proxy_mesh import ProxyParams, closing_depths, fuse_tsdf, tsdf_voxel, write_mesh
 from recon.proxy_refine import (
     RefineConfig,
     ray_depths,
     refine_proxy,
+    refine_run,
+    run_proxy_params,
     silhouette_ious,
     view_subset,
 )
+from recon.rundir import RunDir
+from render.cameras import CameraSet
+from render.io import write_json, write_mask
 from render.raycast import mesh_arrays
 from render.sampler import BandSampler, ProxyRaycaster, UniformSampler
 
@@ -136,3 +141,27 @@ def test_carving_erases_a_closing_surface_in_front_of_the_real_depth():
         radii[carve] = np.linalg.norm(np.asarray(mesh.vertices), axis=1)
     assert np.abs(radii[True] - 0.3).max() < tsdf_voxel(cams, 1 / 64) == pytest.approx(0.035, 0.01)
     assert (radii[False] > 0.55).sum() > 100
+
+
+def test_refine_run_uses_the_training_views_masks_and_the_runs_proxy_settings(tmp_path):
+    """A run directory: 16 views (every 4th held out), masks, the ellipsoid as proxy_mesh.ply
+    and recon_state.json asking for 2000 triangles: 12 views are rendered, the proxy settings
+    are the run's, the proxy file is left alone."""
+    cams = [c.replace(split="test" if i % 4 == 0 else "train") for i, c in enumerate(cameras())]
+    run = RunDir(tmp_path / "run")
+    run.root.mkdir()
+    for cam, mask in zip(cams, sphere_masks(cams, np.zeros(3), R), strict=True):
+        write_mask(run.mask_path(cam.name), mask)
+    run.save_cameras(CameraSet(cams))
+    write_mesh(run.proxy_mesh, ellipsoid())
+    write_json(
+        run.root / "recon_state.json", {"options": {"proxy_mesh": {"target_triangles": 2000}}}
+    )
+    assert run_proxy_params(run).target_triangles == 2000
+    assert run_proxy_params(run).voxel_size == ProxyParams().voxel_size
+    sampler = BandSampler(ProxyRaycaster(ellipsoid(), inflate=0.15), n_band=32, n_coarse=4)
+    mesh, stats = refine_run(run, SphereField(), sampler)
+    assert stats["refine_views"] == 12 and len(mesh.triangles) <= 2000
+    assert radial_error(mesh).mean() < 0.018
+    assert stats["silhouette_iou_after"] > stats["silhouette_iou_before"] + 0.08
+    assert len(o3d.io.read_triangle_mesh(str(run.proxy_mesh)).triangles) == 3480
