@@ -88,7 +88,7 @@ def worker(run: Path, opts: dict[str, str], preview: Path) -> None:
     for key, value in opts.items():
         if key in ("native", "code"):
             continue
-        kind = types[key]
+        kind = str(types[key]).replace(" | None", "")  # annotations are strings here
         kwargs[key] = {"int": int, "float": float, "bool": lambda v: v in ("1", "true")}.get(
             kind, str
         )(value)

@@ -81,10 +81,13 @@ class TemplateScene(Scene):
         if self._mesh is None:
             import open3d as o3d
 
+            from recon.fit import template_proxy
+
             self.run.require("proxy_mesh")
-            m = o3d.io.read_triangle_mesh(str(self.run.proxy_mesh))
+            proxy = template_proxy(self.run)  # the one the template was fitted around
+            m = o3d.io.read_triangle_mesh(str(proxy))
             if len(m.triangles) == 0:
-                raise SineError(f"{self.run.proxy_mesh} has no triangles; re-run `sine recon`")
+                raise SineError(f"{proxy} has no triangles; re-run `sine recon`")
             self._mesh = (np.asarray(m.vertices).copy(), np.asarray(m.triangles).copy())
         return self._mesh
 

@@ -68,8 +68,10 @@ def viewer_scene(run_dir, edit=None, strength=1.0, colors=True, device="auto"):
         template = load_scene(run.root, None, device=device)
         template_mesh = template.colored_mesh() if colors else (*template.mesh(), None)
     else:
+        from recon.fit import template_proxy
+
         run.require("proxy_mesh")
-        m = o3d.io.read_triangle_mesh(str(run.proxy_mesh))
+        m = o3d.io.read_triangle_mesh(str(template_proxy(run)))
         template_mesh = (np.asarray(m.vertices), np.asarray(m.triangles), None)
     edited_mesh = None
     if edit is not None:

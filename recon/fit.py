@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from recon.proxy_mesh import write_mesh
 from recon.rundir import RunDir
 from recon.selfcheck import require_trusted_poses
 from recon.training import RUNTIME_KEYS, LoopOptions, Trainer, loop_options
@@ -96,6 +97,17 @@ class FitConfig(LoopOptions):
         "per-view appearance code length (0: off); for lights that turn with the camera "
         "(turntables): held-out views use the codes of their nearest training views",
         low=0,
+    )
+    refine_proxy: float = option(
+        0.0,
+        "after this fraction of the steps, replace the proxy by one fused from the field's own "
+        "depth (NeuS-style refine loop; template/proxy_mesh.ply) and train the rest in its band "
+        "(0: off; useful when the proxy came from hull + stereo rather than dataset depth)",
+        low=0.0,
+        high=0.9,
+    )
+    refine_views: int = option(
+        16, "training views rendered for the proxy refinement (evenly spaced; 0: all)", low=0
     )
     error_sampling: float = option(
         0.5,
@@ -246,14 +258,23 @@ def build_ray_pool(views, sampler, device: torch.device) -> RayPool:
     return pool
 
 
-def make_sampler(cfg: FitConfig, run: RunDir):
+def template_proxy(run: RunDir) -> Path:
+    """The proxy mesh the template was fitted around: template/proxy_mesh.ply when the fit
+    refined it (`--refine-proxy`), else the run's proxy_mesh.ply."""
+    refined = run.template / "proxy_mesh.ply"
+    return refined if refined.is_file() else run.proxy_mesh
+
+
+def make_sampler(cfg: FitConfig, run: RunDir, proxy: Path | None = None):
+    """The fit's ray sampler around `proxy` (default: `template_proxy(run)`)."""
     if cfg.sampler == "uniform":
         return UniformSampler(cfg.uniform_coarse, cfg.importance_samples)
     import open3d as o3d
 
-    mesh = o3d.io.read_triangle_mesh(str(run.proxy_mesh))
+    proxy = proxy or template_proxy(run)
+    mesh = o3d.io.read_triangle_mesh(str(proxy))
     if len(mesh.triangles) == 0:
-        raise SineError(f"{run.proxy_mesh} has no triangles; re-run `sine recon`")
+        raise SineError(f"{proxy} has no triangles; re-run `sine recon`")
     return BandSampler(
         ProxyRaycaster(mesh, inflate=cfg.band_width), cfg.band_samples, cfg.coarse_samples
     )
@@ -288,6 +309,23 @@ def load_template(run_dir, device: torch.device | None = None) -> tuple[Template
     """The fitted field and background of a run (RUN/template/field.pt)."""
     field, bg, _ = load_fitted(run_dir, device)
     return field, bg
+
+
+def refine_with_field(run: RunDir, cfg: FitConfig, field, sampler, device) -> tuple:
+    """A proxy fused from the partly trained field's depth (recon.proxy_refine) -> (mesh,
+    JSON-able stats: silhouette IoU before/after, triangles, seconds)."""
+    from recon.proxy_refine import RefineConfig, refine_run
+
+    mesh, stats = refine_run(
+        run, field, sampler, RefineConfig(refine_views=cfg.refine_views), device
+    )
+    plain = {k: v for k, v in stats.items() if isinstance(v, bool | int | float | str)}
+    print(
+        f"fit: proxy refined from the field's depth: silhouette IoU "
+        f"{plain.get('silhouette_iou_before', float('nan')):.3f} -> "
+        f"{plain.get('silhouette_iou_after', float('nan')):.3f}"
+    )
+    return mesh, plain
 
 
 def store_appearance(field: TemplateField, codes: torch.Tensor, cameras) -> None:
@@ -406,7 +444,11 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     if not train_views:
         raise SineError(f"{run.cameras} has no frame with split 'train'")
     bg_color, bg_learn = background_color(train_views, cfg.background)
-    sampler = make_sampler(cfg, run)
+    refine_at = round(cfg.iterations * cfg.refine_proxy) if cfg.sampler == "band" else 0
+    refined_proxy = trainer.work_dir / "proxy_mesh.ply"
+    proxy_state = {"refined": False}  # + the refinement's stats once done (checkpointed)
+    refined = bool((trainer.saved("proxy") or {}).get("refined"))
+    sampler = make_sampler(cfg, run, refined_proxy if refined else run.proxy_mesh)
     pool = build_ray_pool(train_views, sampler, device)
 
     torch.manual_seed(cfg.seed)
@@ -421,7 +463,13 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     if cfg.appearance_dim:
         groups.append({"params": [codes], "lr": cfg.lr_mlp, "name": "appearance"})
     trainer.start(
-        {"field": field, "background": background, "ray_errors": pool.errors, "codes": codes},
+        {
+            "field": field,
+            "background": background,
+            "ray_errors": pool.errors,
+            "codes": codes,
+            "proxy": proxy_state,
+        },
         groups,
         lr_final_factor=cfg.lr_final_factor,
     )
@@ -460,6 +508,20 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         return terms
 
     field.train()
+    if refine_at and not proxy_state["refined"]:
+        first_leg = refine_at if stop_at is None else min(stop_at, refine_at)
+        trainer.run(step, first_leg)
+        if trainer.step < refine_at:  # stopped early on purpose
+            return {"step": trainer.step}
+        mesh, stats = refine_with_field(run, cfg, field, sampler, device)
+        write_mesh(refined_proxy, mesh)
+        sampler = make_sampler(cfg, run, refined_proxy)
+        pool = build_ray_pool(train_views, sampler, device)
+        selector = RaySelector(pool, cfg.error_sampling, generator)
+        trainer.state["ray_errors"] = pool.errors
+        proxy_state.update(refined=True, **stats)
+        trainer.checkpoint()  # the refined proxy and the rays cast against it go together
+        field.train()
     if not trainer.run(step, stop_at):  # stopped early on purpose
         return {"step": trainer.step}
     if cfg.appearance_dim:
@@ -505,6 +567,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
             "final_train_psnr": trainer.log[-1]["psnr"] if trainer.log else None,
             "background_color": background().detach().cpu().tolist(),
             "background_learned": bool(background.learnable),
+            "proxy_refined": proxy_state,
             "device": str(device),
         }
     )

@@ -281,6 +281,17 @@ class Trainer:
             )
         shutil.rmtree(self.work_dir, ignore_errors=True)
 
+    def saved(self, name: str) -> Any:
+        """The JSON-able (dict / list) state entry `name` of the checkpoint `start` will resume
+        from; None when training starts afresh or the checkpoint has no such entry. Lets a
+        stage rebuild, before `start`, data whose shape the checkpoint fixed."""
+        if self._resumable is None:
+            self._prepare_work_dir()
+        if not self._resumable:
+            return None
+        packed = load_torch(self.checkpoint_path)["state"].get(name) or {}
+        return json.loads(packed["json"]) if "json" in packed else None
+
     # ---- setup -------------------------------------------------------------------------------
     def start(
         self,

@@ -229,3 +229,34 @@ def test_appearance_codes_are_fitted_and_blended_for_held_out_views(tiny_run, tm
     x, d = torch.zeros(2, 3), torch.tensor([[0.0, 0.0, 1.0]] * 2)
     by_code = field(x, d, codes[:2])["rgb"]
     assert not torch.allclose(by_code[0], by_code[1])  # the colour head reads the code
+
+
+def test_refine_proxy_mid_fit_replaces_the_band_and_resumes_exactly(tmp_path):
+    """A proxy 20 % too large is refined from the field after 40 % of the steps (accuracy:
+    tests/test_proxy_refine.py, on analytic fields): the template
+    keeps the refined proxy (closer to the true sphere of radius 0.5), later stages find it,
+    and a fit interrupted after the refinement resumes to the same parameters."""
+    import open3d as o3d
+
+    from recon.fit import template_proxy
+
+    base = _make_run(tmp_path / "base")
+    big = o3d.geometry.TriangleMesh.create_sphere(0.6, 40)
+    o3d.io.write_triangle_mesh(str(base.proxy_mesh), big)
+    cfg = FitConfig(iterations=60, refine_proxy=0.4, refine_views=6, **{**TINY, "lr_mlp": 2e-2})
+    straight = _copy(base, tmp_path / "a")
+    metrics = fit_template(straight.root, cfg, progress=False)
+    refined = metrics["proxy_refined"]
+    assert refined["refined"] and refined["silhouette_iou_after"] > refined["silhouette_iou_before"]
+    assert template_proxy(straight) == straight.template / "proxy_mesh.ply"
+    radii = np.linalg.norm(
+        np.asarray(o3d.io.read_triangle_mesh(str(template_proxy(straight))).vertices), axis=1
+    )
+    assert np.median(radii) < 0.59  # closer to the truth (24 tiny steps: a soft field)
+    resumed = _copy(base, tmp_path / "b")
+    assert fit_template(resumed.root, cfg, progress=False, stop_at=40) == {"step": 40}
+    fit_template(resumed.root, cfg, progress=False)
+    a = torch.load(straight.template / "checkpoint.pt", weights_only=True)
+    b = torch.load(resumed.template / "checkpoint.pt", weights_only=True)
+    for k, v in a["state"]["field"]["state_dict"].items():
+        torch.testing.assert_close(b["state"]["field"]["state_dict"][k], v, rtol=0, atol=0)
