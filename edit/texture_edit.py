@@ -82,7 +82,8 @@ from edit.texture_views import (
 )
 from recon.fit import load_fitted, make_sampler
 from recon.rundir import RunDir
-from recon.training import Trainer
+from recon.training import RUNTIME_KEYS as LOOP_RUNTIME_KEYS
+from recon.training import LoopOptions, Trainer, loop_options
 from render.configs import option, to_dict, validate
 from render.device import pick_device, torch_threads
 from render.errors import SineError
@@ -102,7 +103,7 @@ METHODS = ("ours", "naive")
 
 
 @dataclass
-class TextureEditConfig:
+class TextureEditConfig(LoopOptions):
     """Options of a texture edit (`sine edit --mode texture`). Options named as the geometry
     edit's share its defaults (one `sine edit` command line serves both modes)."""
 
@@ -186,23 +187,12 @@ class TextureEditConfig:
         low=2,
     )
     checkpoint_every: int = option(100, "steps between checkpoints", low=1)
-    checkpoint_seconds: float = option(60.0, "seconds between checkpoints", low=1)
     log_every: int = option(25, "steps between log entries", low=1)
     previews: int = option(4, "held-out views rendered as previews at the end (0: none)", low=0)
     seed: int = option(0, "random seed")
-    device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
-    threads: int = option(0, "torch CPU threads (0: torch's default)", low=0)
 
 
-RUNTIME_KEYS = (
-    "device",
-    "threads",
-    "previews",
-    "log_every",
-    "checkpoint_every",
-    "checkpoint_seconds",
-    "chunk",
-)
+RUNTIME_KEYS = (*LOOP_RUNTIME_KEYS, "previews", "chunk")
 
 
 # ---- preparation --------------------------------------------------------------------------
@@ -371,11 +361,7 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
         f"edit {out.name}",
         settings,
         RUNTIME_KEYS,
-        iterations=cfg.iterations,
-        seed=cfg.seed,
-        log_every=cfg.log_every,
-        checkpoint_every=cfg.checkpoint_every,
-        checkpoint_seconds=cfg.checkpoint_seconds,
+        **loop_options(cfg),
         force=force,
         progress=progress,
         manual_backward=cfg.method == "ours",

@@ -118,8 +118,11 @@ class FitConfig(LoopOptions):
     )
     background: str = option(
         "auto",
-        "background colour: auto (from masks), white, black, learn",
-        choices=["auto", "white", "black", "learn"],
+        "background: auto (from masks: a plain colour, or capture when the backdrop varies), "
+        "white, black, learn (one colour), capture (rays outside the masks are composited over "
+        "their own captured pixel, so the field never explains a real backdrop; renders use a "
+        "learned colour)",
+        choices=["auto", "white", "black", "learn", "capture"],
     )
     previews: int = option(4, "held-out views written as previews (0: none)", low=0)
     seed: int = option(0, "random seed (ray batches, jitter, initialisation)", low=0)
@@ -162,6 +165,7 @@ def background_color(views, mode: str) -> tuple[np.ndarray, bool]:
         return np.ones(3, np.float32), False
     if mode == "black":
         return np.zeros(3, np.float32), False
+    mode = "learn" if mode == "capture" else mode
     pixels = [img[~m] for _, img, m in views if m is not None and (~m).any()]
     if not pixels:  # no masks: learn it, starting from the image borders
         border = np.concatenate(
@@ -455,6 +459,9 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     field = TemplateField(field_config(cfg, len(train_views))).to(device)
     codes = torch.nn.Parameter(torch.zeros(len(train_views), cfg.appearance_dim, device=device))
     background = Background(bg_color, learnable=bg_learn).to(device)
+    behind_capture = pool.has_masks and (
+        cfg.background == "capture" or (cfg.background == "auto" and bg_learn)
+    )
     groups = field.param_groups(cfg.lr_grid, cfg.lr_mlp)
     if bg_learn:
         groups.append(
@@ -485,12 +492,16 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
             def query(x, d):
                 return field(x, d, ray_codes.repeat_interleave(len(x) // len(ray_codes), 0))
 
+        behind = background
+        if behind_capture:  # [n, 3]: outside the masks, the captured pixel itself
+            outside = pool.mask[idx, None] < 0.5
+            behind = torch.where(outside, pool.rgb[idx], background()[None].expand(len(idx), 3))
         out = render_rays(
             query,
             pool.origins[idx],
             pool.dirs[idx],
             sampler,
-            background,
+            behind,
             hits=pool.hits[idx],
             perturb=True,
             generator=generator,
@@ -567,6 +578,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
             "final_train_psnr": trainer.log[-1]["psnr"] if trainer.log else None,
             "background_color": background().detach().cpu().tolist(),
             "background_learned": bool(background.learnable),
+            "background_behind_rays": "capture" if behind_capture else "colour",
             "proxy_refined": proxy_state,
             "device": str(device),
         }

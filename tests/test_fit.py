@@ -7,11 +7,12 @@ import open3d as o3d
 import pytest
 import torch
 
-from recon.fit import FitConfig, fit_template, load_template
+from recon.fit import FitConfig, fit_template, load_template, make_sampler
 from recon.rundir import RunDir
 from render.cameras import Camera, CameraSet, look_at
 from render.errors import SineError
-from render.io import read_json, read_yaml, write_image, write_mask
+from render.io import read_image, read_json, read_mask, read_yaml, write_image, write_mask
+from render.renderer import render_image
 
 
 def _make_run(root, n_views=12, size=48):
@@ -260,3 +261,30 @@ def test_refine_proxy_mid_fit_replaces_the_band_and_resumes_exactly(tmp_path):
     b = torch.load(resumed.template / "checkpoint.pt", weights_only=True)
     for k, v in a["state"]["field"]["state_dict"].items():
         torch.testing.assert_close(b["state"]["field"]["state_dict"][k], v, rtol=0, atol=0)
+
+
+def test_capture_background_composites_rays_outside_the_masks_over_their_own_pixels(tmp_path):
+    """A backdrop of random colours (no single colour explains it): with --background capture
+    the rays outside the masks are composited over their own pixels, so the field learns no
+    fog in front of the backdrop and the object fits far better than with one learned colour."""
+    run = _copy(_make_run(tmp_path / "base"), tmp_path / "run")
+    rng = np.random.default_rng(0)
+    for cam in run.load_cameras().frames:
+        image = read_image(run.image_path(cam.name))
+        mask = read_mask(run.mask_path(cam.name))
+        image[~mask] = rng.uniform(0, 1, (int((~mask).sum()), 3))
+        write_image(run.image_path(cam.name), image)
+    fogs, objects = {}, {}
+    for mode in ("learn", "capture"):
+        cfg = FitConfig(iterations=150, background=mode, mask_weight=0.0, **TINY)
+        metrics = fit_template(run.root, cfg, progress=False, force=True)
+        assert metrics["background_behind_rays"] == ("capture" if mode == "capture" else "colour")
+        field, bg = load_template(run.root)
+        cam = run.load_cameras().frames[1]
+        out = render_image(cam, field, make_sampler(FitConfig(**TINY), run), bg)
+        outside = ~read_mask(run.mask_path(cam.name))
+        fogs[mode] = float(out["opacity"][outside].mean())
+        objects[mode] = metrics["heldout_psnr_object"]
+    # measured: fog 0.014 -> 0.003, object PSNR 17.7 -> 23.2 dB
+    assert fogs["capture"] < 0.5 * fogs["learn"]
+    assert objects["capture"] > objects["learn"] + 3.0
