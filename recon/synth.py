@@ -9,6 +9,12 @@ ambient under a light fixed in the world, so the object's appearance is the same
 Known 3D edits of the same mesh (a smooth stretch of the part above a plane, a recoloured part or
 a new texture image) rendered from the same cameras are the ground truth of an edit.
 
+Behind the object (`--background`): a plain colour, a procedural cluttered room (`clutter`: random
+coloured shapes, stripes and noise at several scales painted on a large sphere fixed in the world,
+so the backdrop moves between views like a real room around a handheld camera) or an image file
+(resized to the view, fixed in the image plane like a backdrop behind a turntable). The GT masks
+are the object's only.
+
 With `--format nerf-synthetic` the views are also written in the Blender / NeRF-synthetic layout
 (`write_nerf_synthetic`), in the `nerf_synthetic/` subfolder (so that the folder holds nothing but
 that dataset and `sine ingest` reads its split files).
@@ -365,6 +371,140 @@ def ring_cameras(
     return cams
 
 
+# ---- backdrops ----------------------------------------------------------------------------
+BACKDROP_SPHERE = 4.0  # radius of the clutter sphere, in camera distances (cameras well inside)
+CLUTTER_TEXTURE = (1024, 2048)  # equirectangular texture of the clutter sphere (rows, columns)
+
+
+@dataclass
+class Backdrop:
+    """What the cameras see where the object is not: one of a colour [3], an equirectangular
+    texture [H, W, 3] on a sphere of `radius` around the origin (fixed in the world) or an image
+    [H, W, 3] fixed in the image plane (resized to each view)."""
+
+    colour: np.ndarray | None = None
+    texture: np.ndarray | None = None
+    radius: float = 0.0
+    image: np.ndarray | None = None
+
+    def pixels(self, cam: Camera, rays: np.ndarray) -> np.ndarray:
+        """Backdrop RGB [H*W, 3] float32 of the rays [H*W, 6] through `cam`'s pixels."""
+        h, w = cam.height, cam.width
+        if self.image is not None:
+            img = cv2.resize(self.image, (w, h), interpolation=cv2.INTER_AREA)
+            return np.ascontiguousarray(img, np.float32).reshape(h * w, 3).copy()
+        if self.texture is None:
+            colour = np.asarray(self.colour, np.float32).reshape(3)
+            return np.broadcast_to(colour, (h * w, 3)).copy()
+        o, d = rays[:, :3].astype(np.float64), rays[:, 3:].astype(np.float64)
+        od = np.einsum("nd,nd->n", o, d)
+        t = -od + np.sqrt(od**2 - np.einsum("nd,nd->n", o, o) + self.radius**2)
+        p = o + t[:, None] * d  # [N, 3] on the sphere
+        th, tw = self.texture.shape[:2]
+        lon = np.arctan2(p[:, 1], p[:, 0])
+        lat = np.arcsin(np.clip(p[:, 2] / self.radius, -1.0, 1.0))
+        u = ((lon / (2 * np.pi) + 0.5) * tw - 0.5).astype(np.float32)
+        v = ((0.5 - lat / np.pi) * th - 0.5).astype(np.float32)
+        out = cv2.remap(
+            self.texture,
+            u.reshape(h, w),
+            v.reshape(h, w),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_WRAP,
+        )
+        return out.reshape(h * w, 3).astype(np.float32)
+
+
+def clutter_texture(seed: int = 0, shape: tuple[int, int] = CLUTTER_TEXTURE) -> np.ndarray:
+    """A cluttered room as an equirectangular texture [H, W, 3] float32 in [0, 1]: smooth colour
+    noise, then hundreds of random shapes (boxes, discs, stripes, lines, checkers) from large to
+    small in random colours, then fine grain. Deterministic for a seed."""
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    base = rng.uniform(0.15, 0.85, (4, 8, 3)).astype(np.float32)
+    img = cv2.resize(base, (w, h), interpolation=cv2.INTER_CUBIC)
+    img = (np.clip(img, 0, 1) * 255).astype(np.uint8)
+
+    def pick() -> tuple[int, ...]:  # muted more often than vivid, like furniture and walls
+        grey, vivid = rng.uniform(40, 220), rng.uniform(0, 256, 3)
+        return tuple(int(c) for c in grey + rng.uniform(0.2, 1.0) * (vivid - grey))
+
+    for scale in (0.25, 0.12, 0.06, 0.03, 0.015):
+        for _ in range(int(6 / scale)):
+            colour = pick()
+            cx, cy = int(rng.integers(0, w)), int(rng.integers(0, h))
+            sx, sy = (rng.uniform(0.3, 1.0, 2) * scale * h).astype(int) + 2
+            kind = rng.integers(0, 5)
+            if kind == 0:
+                cv2.rectangle(img, (cx - sx, cy - sy), (cx + sx, cy + sy), colour, -1)
+            elif kind == 1:
+                angle = float(rng.uniform(0, 180))
+                cv2.ellipse(img, (cx, cy), (int(sx), int(sy)), angle, 0, 360, colour, -1)
+            elif kind == 2:  # stripes
+                other = pick()
+                step = max(2, int(sx) // 3)
+                for k, x in enumerate(range(cx - sx, cx + sx, step)):
+                    cv2.rectangle(
+                        img, (x, cy - sy), (x + step - 1, cy + sy), (colour, other)[k % 2], -1
+                    )
+            elif kind == 3:
+                end = (cx + int(rng.integers(-4, 5)) * sx, cy + int(rng.integers(-4, 5)) * sy)
+                cv2.line(img, (cx, cy), end, colour, max(1, int(sy) // 4))
+            else:  # checker
+                other = pick()
+                step = max(2, int(sx) // 2)
+                for i, y in enumerate(range(cy - sy, cy + sy, step)):
+                    for j, x in enumerate(range(cx - sx, cx + sx, step)):
+                        c = (colour, other)[(i + j) % 2]
+                        cv2.rectangle(img, (x, y), (x + step - 1, y + step - 1), c, -1)
+    out = img.astype(np.float32) / 255.0
+    out += rng.normal(0.0, 0.03, out.shape).astype(np.float32)  # grain
+    return np.clip(out, 0.0, 1.0)
+
+
+def parse_background(words) -> tuple[str, object]:
+    """--background words -> ("colour", RGB [3]) | ("clutter", None) | ("image", Path)."""
+    words = [str(w) for w in words]
+    if len(words) == 1 and words[0].lower() == "clutter":
+        return "clutter", None
+    if len(words) == 3:
+        try:
+            rgb = np.array([float(x) for x in words])
+        except ValueError:
+            rgb = None
+        if rgb is not None:
+            if not np.all((rgb >= 0) & (rgb <= 1)):
+                raise SineError("--background R G B: each value must be in [0, 1]")
+            return "colour", rgb
+    if len(words) == 1:
+        path = Path(words[0])
+        if not path.is_file():
+            raise SineError(
+                f"--background {words[0]}: no such image file; use three numbers R G B in [0, 1], "
+                "clutter, or the path of an image"
+            )
+        return "image", path
+    raise SineError(
+        "--background takes three numbers R G B in [0, 1], the word clutter, or an image path"
+    )
+
+
+def make_backdrop(words, seed: int, camera_distance: float) -> Backdrop:
+    """The Backdrop of a --background value (see `parse_background`)."""
+    kind, value = parse_background(words)
+    if kind == "colour":
+        return Backdrop(colour=np.asarray(value, np.float32))
+    if kind == "clutter":
+        return Backdrop(texture=clutter_texture(seed), radius=BACKDROP_SPHERE * camera_distance)
+    from render.io import read_image
+
+    try:
+        image = read_image(value)
+    except Exception as exc:  # unreadable / not an image
+        raise SineError(f"--background {value}: cannot read it as an image ({exc})") from None
+    return Backdrop(image=np.ascontiguousarray(image[..., :3], np.float32))
+
+
 # ---- rendering ----------------------------------------------------------------------------
 def _camera_rays(cam: Camera, cache: dict) -> tuple[np.ndarray, np.ndarray]:
     """Rays [H*W, 6] (origin, unit direction; float32) through the pixel centres of `cam`, and
@@ -393,14 +533,16 @@ def render_views(
     progress: bool = False,
 ) -> list[dict]:
     """Ray casts `mesh` from each camera -> per view dict(rgb [H,W,3] float32, mask [H,W] bool,
-    depth [H,W] float32 camera z (0 = background), labels [H,W] int part ids (0 = background))."""
+    depth [H,W] float32 camera z (0 = background), labels [H,W] int part ids (0 = background)).
+
+    `background`: an RGB colour or a `Backdrop`."""
     from tqdm import tqdm
 
     caster = MeshRaycaster((mesh.vertices, mesh.faces))
     face_n, vert_n = mesh.normals()
     light_dirs = np.array([np.asarray(d) / np.linalg.norm(d) for d, _ in lights], np.float32)
     light_power = np.array([p for _, p in lights], np.float32)
-    bg = np.asarray(background, np.float32).reshape(3)
+    backdrop = background if isinstance(background, Backdrop) else Backdrop(colour=background)
     views, cache = [], {}
     for cam in tqdm(cameras, desc="render", unit="view", disable=not progress):
         rays, z_per_t = _camera_rays(cam, cache)
@@ -426,7 +568,7 @@ def render_views(
         shade = np.clip(ambient + (1 - ambient) * diffuse, 0, 1.2)[:, None]
 
         h, w = cam.height, cam.width
-        rgb = np.broadcast_to(bg, (h * w, 3)).copy()
+        rgb = backdrop.pixels(cam, rays)
         rgb[mask] = np.clip(albedo * shade, 0, 1)
         depth = np.zeros(h * w, np.float32)
         depth[mask] = t[mask] * z_per_t[mask]
@@ -556,7 +698,13 @@ class SynthConfig:
         0.7,
         "fraction of the half-frame (from the image centre) the object spans in its widest view",
     )
-    background: list[float] = option([1.0, 1.0, 1.0], "background colour R G B in [0, 1]")
+    background: list[str] = option(
+        [1.0, 1.0, 1.0],
+        "what lies behind the object: a colour R G B in [0, 1]; clutter = a procedural cluttered "
+        "room on a large sphere fixed in the world (it moves between views; see "
+        "--background-seed); or the path of an image (resized to the view, fixed in the image)",
+    )
+    background_seed: int = option(0, "random seed of --background clutter", low=0)
     up_axis: str = option(
         "auto",
         "axis of the source mesh that points up (rotated to +z); auto = y for OBJ/GLTF/GLB",
@@ -602,6 +750,14 @@ class SynthConfig:
         choices=list(OUTPUT_FORMATS),
     )
 
+    def __post_init__(self):
+        # three numbers stay numbers (a colour), whether they came from the CLI (text) or code
+        try:
+            if len(self.background) == 3:
+                self.background = [float(c) for c in self.background]
+        except (TypeError, ValueError):
+            pass  # not a colour: parse_background explains
+
 
 def _validate(cfg: SynthConfig) -> None:
     if (cfg.mesh is None) == (cfg.procedural is None):
@@ -614,8 +770,7 @@ def _validate(cfg: SynthConfig) -> None:
         raise SineError("--fov must be between 1 and 170 degrees")
     if not 0.05 <= cfg.fill <= 1.0:
         raise SineError("--fill must be in [0.05, 1]")
-    if len(cfg.background) != 3:
-        raise SineError("--background takes three numbers R G B in [0, 1]")
+    parse_background(cfg.background)
     for name in ("parts_plane", "edit_plane"):
         value = getattr(cfg, name)
         if value is not None and len(value) != 4:
@@ -717,7 +872,7 @@ def synthesize(cfg: SynthConfig, progress: bool = True) -> dict:
         every, cfg.views, cfg.width, cfg.height, cfg.elevation, cfg.fov, cfg.fill
     )
     cameras = ring_cameras(cfg.views, cfg.width, cfg.height, cfg.elevation, distance, cfg.fov)
-    background = [float(c) for c in cfg.background]
+    background = make_backdrop(cfg.background, cfg.background_seed, distance)
     out = Path(cfg.out)
 
     t1 = time.perf_counter()
