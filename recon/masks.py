@@ -320,15 +320,19 @@ def _hull_views(cameras, masks: list[np.ndarray], tolerance: float, params: Mask
 
 
 def _refine_in_hull(
-    image: np.ndarray, mask: np.ndarray, hull: np.ndarray, params: MaskParams
+    image: np.ndarray, mask: np.ndarray, hull: np.ndarray, n: np.ndarray, params: MaskParams
 ) -> np.ndarray:
     """GrabCut again with the hull's silhouette [H, W] as the bound: sure background outside it
-    (grown by ~1 % of the image), sure foreground where the mask and the shrunk hull agree,
-    probable foreground in the hull."""
+    (grown by ~1 % of the image), sure foreground where the shrunk hull, the shrunk mask and
+    the normalised saliency `n` agree (the saliency's blur leaves a rim around the object in
+    every view, which the hull keeps: only colour can cut it), probable foreground elsewhere in
+    the hull."""
     r = max(1, int(round(0.012 * min(mask.shape))))
     gc = np.full(mask.shape, cv2.GC_PR_BGD, np.uint8)
     gc[hull] = cv2.GC_PR_FGD
-    gc[(cv2.erode(hull.astype(np.uint8), _disc(r)) > 0) & mask] = cv2.GC_FGD
+    core = cv2.erode(hull.astype(np.uint8), _disc(r)) > 0
+    core &= cv2.erode(mask.astype(np.uint8), _disc(2 * r)) > 0
+    gc[core & (n >= params.saliency_probable)] = cv2.GC_FGD
     gc[cv2.dilate(hull.astype(np.uint8), _disc(r)) == 0] = cv2.GC_BGD
     return _cleanup(_grabcut(image, gc, max(params.grabcut_iterations, 1)), params)
 
@@ -346,11 +350,9 @@ def hull_repair(
     "flagged": [indices below min_hull_iou]}; masks unchanged when a hull is empty."""
     params = params or MaskParams()
     masks = [m.copy() for m in masks]
+    n = {i: normalised_saliency(s, params) for i, s in saliency.items()}
     generous = [
-        (normalised_saliency(saliency[i], params) >= params.saliency_generous) | m
-        if i in saliency
-        else m
-        for i, m in enumerate(masks)
+        (n[i] >= params.saliency_generous) | m if i in n else m for i, m in enumerate(masks)
     ]
     grow = _disc(2)
     for tolerance in (params.hull_tolerance, params.hull_tolerance_final):
@@ -358,7 +360,7 @@ def hull_repair(
         if hull is None:
             return masks, {"hull_iou": {}, "flagged": sorted(images), "hull": "empty"}
         for i, image in images.items():
-            masks[i] = _refine_in_hull(image, masks[i], hull[i], params)
+            masks[i] = _refine_in_hull(image, masks[i], hull[i], n[i], params)
         generous = [cv2.dilate(m.astype(np.uint8), grow) > 0 for m in masks]
     ious = {i: mask_iou(masks[i], hull[i] & generous[i]) for i in images}
     flagged = sorted(i for i, v in ious.items() if v < params.min_hull_iou)
