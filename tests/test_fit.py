@@ -208,7 +208,7 @@ def test_presets_fill_only_the_options_not_given():
     default = resolve_preset(FitConfig())
     assert (default.iterations, default.batch_rays) == (1500, 2048)
     mixed = resolve_preset(FitConfig(preset="quality", iterations=7))
-    assert (mixed.iterations, mixed.batch_rays) == (7, 4096)
+    assert (mixed.iterations, mixed.batch_rays, mixed.log2_table) == (7, 4096, 19)
     with pytest.raises(SineError, match="--preset"):
         resolve_preset(FitConfig(preset="slow"))
 
