@@ -33,7 +33,15 @@ from render.configs import from_json, option, to_dict, to_json, validate
 from render.device import pick_device, torch_threads
 from render.errors import SineError
 from render.hashgrid import HashGridConfig
-from render.io import load_torch, read_image, read_mask, save_torch, write_image, write_json
+from render.io import (
+    load_torch,
+    read_image,
+    read_json,
+    read_mask,
+    save_torch,
+    write_image,
+    write_json,
+)
 from render.metrics import masked_psnr, masked_ssim, psnr, psnr_of_mse
 from render.renderer import render_image, render_rays
 from render.sampler import BandSampler, ProxyRaycaster, RayHits, UniformSampler
@@ -46,6 +54,9 @@ PRESETS: dict[str, dict[str, int]] = {
     # 2^19 rows per level: fewer hash collisions (spot +0.5 dB at 1500 steps), ~15 % slower
     "quality": {"iterations": 3500, "batch_rays": 4096, "log2_table": 19},  # <= 20 min
 }
+
+
+DEFAULT_REFINE_AT = 0.3  # refine an estimated proxy after 30 % of the steps
 
 
 @dataclass
@@ -97,17 +108,25 @@ class FitConfig(LoopOptions):
     band_width: float = option(0.04, "band half-width d and proxy inflation, in run units", low=0.0)
     uniform_coarse: int = option(64, "stratified coarse samples (uniform sampler)", low=1)
     mask_weight: float = option(0.1, "weight of the opacity-vs-mask BCE loss (0: off)", low=0.0)
+    sh_degree: int = option(
+        4,
+        "spherical-harmonics degree of the view direction fed to the colour (1: colour does "
+        "not depend on the view, for matte objects; 4: shiny ones)",
+        low=1,
+        high=4,
+    )
     appearance_dim: int = option(
         0,
         "per-view appearance code length (0: off); for lights that turn with the camera "
         "(turntables): held-out views use the codes of their nearest training views",
         low=0,
     )
-    refine_proxy: float = option(
-        0.0,
+    refine_proxy: float | None = option(
+        None,
         "after this fraction of the steps, replace the proxy by one fused from the field's own "
         "depth (NeuS-style refine loop; template/proxy_mesh.ply) and train the rest in its band "
-        "(0: off; useful when the proxy came from hull + stereo rather than dataset depth)",
+        "(0: off; None: 0.3 when the proxy came from hull + stereo depth, off for dataset depth "
+        "or runs without recon_report.json; templeSparseRing +2.0 dB)",
         low=0.0,
         high=0.9,
     )
@@ -135,12 +154,19 @@ class FitConfig(LoopOptions):
     eval_chunk: int = option(16384, "rays per chunk when rendering held-out views", low=1)
 
 
-def resolve_preset(cfg: FitConfig) -> FitConfig:
-    """`cfg` with the options left at None taken from its preset."""
+def resolve_preset(cfg: FitConfig, run: RunDir | None = None) -> FitConfig:
+    """`cfg` with the options left at None taken from its preset (and, for `refine_proxy`,
+    from how the run's proxy was made: recon_report.json's depth_source)."""
     preset = PRESETS.get(cfg.preset)
     if preset is None:
         raise SineError(f"--preset must be one of {', '.join(PRESETS)} (got {cfg.preset!r})")
     chosen = {k: v for k, v in preset.items() if getattr(cfg, k) is None}
+    if cfg.refine_proxy is None:
+        source = None
+        if run is not None and run.recon_report.is_file():
+            source = read_json(run.recon_report).get("depth_source")
+        estimated = source is not None and source != "dataset"
+        chosen["refine_proxy"] = DEFAULT_REFINE_AT if estimated else 0.0
     return replace(cfg, **chosen)
 
 
@@ -293,7 +319,12 @@ def field_config(cfg: FitConfig, n_views: int = 0) -> TemplateFieldConfig:
         n_levels=cfg.levels, log2_table=cfg.log2_table, max_resolution=cfg.max_resolution
     )
     views = n_views if cfg.appearance_dim else 0
-    return TemplateFieldConfig(grid=grid, appearance_dim=cfg.appearance_dim, appearance_views=views)
+    return TemplateFieldConfig(
+        grid=grid,
+        sh_degree=cfg.sh_degree,
+        appearance_dim=cfg.appearance_dim,
+        appearance_views=views,
+    )
 
 
 def load_fitted(run_dir, device: torch.device | None = None):
@@ -418,8 +449,8 @@ def fit_template(
 
     `stop_at` ends this call after that step, with a checkpoint (as if interrupted).
     """
-    cfg = validate(resolve_preset(cfg or FitConfig()))
     run = RunDir(run_dir)
+    cfg = validate(resolve_preset(cfg or FitConfig(), run))
     run.require("cameras")
     require_trusted_poses(run)
     if not run.proxy_mesh.is_file() and cfg.sampler == "band":

@@ -288,3 +288,17 @@ def test_capture_background_composites_rays_outside_the_masks_over_their_own_pix
     # measured: fog 0.014 -> 0.003, object PSNR 17.7 -> 23.2 dB
     assert fogs["capture"] < 0.5 * fogs["learn"]
     assert objects["capture"] > objects["learn"] + 3.0
+
+
+def test_the_proxy_is_refined_by_default_only_when_it_was_estimated(tmp_path):
+    from recon.fit import DEFAULT_REFINE_AT, resolve_preset
+    from render.io import write_json
+
+    run = RunDir(tmp_path / "run")
+    run.root.mkdir()
+    assert resolve_preset(FitConfig(), run).refine_proxy == 0.0  # no report: nothing known
+    for source, expected in (("dataset", 0.0), ("visual_hull+stereo", DEFAULT_REFINE_AT)):
+        write_json(run.recon_report, {"depth_source": source})
+        assert resolve_preset(FitConfig(), run).refine_proxy == expected
+    assert resolve_preset(FitConfig(refine_proxy=0.5), run).refine_proxy == 0.5
+    assert resolve_preset(FitConfig(refine_proxy=0.0), run).refine_proxy == 0.0
