@@ -224,8 +224,7 @@ def silhouette_ious(mesh, cameras: list[Camera], masks: list[np.ndarray]) -> lis
     """IoU of the mesh's ray-cast silhouette with each view's mask (recon.report style)."""
     caster = MeshRaycaster(mesh)
     return [
-        mask_iou(mask, caster.cast_camera(cam).hit.reshape(cam.height, cam.width))
-        for cam, mask in zip(cameras, masks, strict=True)
+        mask_iou(mask, caster.silhouette(cam)) for cam, mask in zip(cameras, masks, strict=True)
     ]
 
 

@@ -29,7 +29,7 @@ def proxy_silhouettes(run: RunDir, cameras) -> list[np.ndarray]:
     import open3d as o3d
 
     caster = MeshRaycaster(o3d.t.io.read_triangle_mesh(str(run.proxy_mesh)))
-    return [caster.cast_camera(cam).hit.reshape(cam.height, cam.width) for cam in cameras]
+    return [caster.silhouette(cam) for cam in cameras]
 
 
 def outline_sheet(images, masks, silhouettes, columns: int = 6, width: int = 200) -> np.ndarray:

@@ -83,7 +83,7 @@ def hull_silhouettes(
         return empty
     verts, faces = hull_mesh(occ, origin, voxel)
     caster = MeshRaycaster((verts, faces))
-    return [caster.cast_camera(c).hit.reshape(c.height, c.width) for c in cameras]
+    return [caster.silhouette(c) for c in cameras]
 
 
 def silhouette_consistency(

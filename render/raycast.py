@@ -7,7 +7,8 @@ hit along a ray, over Open3D's `RaycastingScene` or embreex (both Embree underne
 - `cast(origins, dirs)` -> `MeshHits`: distance `t` (inf where missed), hit mask, triangle ids,
   barycentrics, unit geometric normals. numpy rays give numpy arrays; torch rays give tensors on
   the rays' device.
-- `cast_camera(cam)` / `depth(cam)`: one ray per pixel centre of a `render.cameras.Camera`.
+- `cast_camera(cam)` / `depth(cam)` / `silhouette(cam)`: one ray per pixel centre of a
+  `render.cameras.Camera` (hits, camera-z depth [H, W], silhouette [H, W] bool).
 - `cast_all(origins, dirs, max_hits)` -> `MultiHits`: the first `max_hits` hits of each ray in
   order (a band around thin parts, entering and leaving a surface).
 
@@ -165,6 +166,10 @@ class MeshRaycaster:
     def cast_camera(self, cam) -> MeshHits:
         """One ray per pixel centre of `cam` (row-major, `Camera.rays`) -> hits [H*W]."""
         return self.cast(*cam.rays())
+
+    def silhouette(self, cam) -> np.ndarray:
+        """The mesh's silhouette [H, W] bool seen by `cam` (pixel centres that hit it)."""
+        return self.cast_camera(cam).hit.reshape(cam.height, cam.width)
 
     def depth(self, cam) -> np.ndarray:
         """Camera-z depth [H, W] float32 of the mesh seen by `cam` (0 where no hit)."""

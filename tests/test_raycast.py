@@ -104,6 +104,10 @@ def test_camera_depth_of_a_plane(backend):
     np.testing.assert_allclose(rc.depth(cam), np.full((6, 8), 2.0), rtol=1e-6)
     # the corner pixel (0.5, 0.5) looks 3.5 / 8 and 2.5 / 8 off axis: t = 2 * |(3.5, 2.5, 8)| / 8
     np.testing.assert_allclose(hits.t[0], 2 * np.linalg.norm([3.5, 2.5, 8.0]) / 8, rtol=1e-6)
+    assert rc.silhouette(cam).shape == (6, 8) and rc.silhouette(cam).all()
+    # a square of side 0.5 at distance 2 spans 0.5 * 8 / 2 = 2 pixels around the centre (4, 3)
+    small = MeshRaycaster((plane[0] * 0.05, plane[1]), backend=backend).silhouette(cam)
+    assert small.sum() == 4 and small[2:4, 3:5].all()
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
