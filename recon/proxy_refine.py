@@ -36,6 +36,7 @@ import torch
 
 from recon.proxy_mesh import ProxyParams, build_proxy, closing_depths, tsdf_voxel
 from recon.rundir import RunDir
+from recon.selfcheck import resized_view
 from render.cameras import Camera
 from render.configs import option
 from render.errors import SineError
@@ -93,11 +94,9 @@ def scaled(cam: Camera, mask: np.ndarray | None, scale: float):
     """The camera and its mask [H, W] bool at `scale` of the size (mask by area, >= half)."""
     if scale == 1.0:
         return cam, mask
-    w, h = max(1, round(cam.width * scale)), max(1, round(cam.height * scale))
-    small = cam.resized(w, h)
-    if mask is not None:
-        mask = cv2.resize(mask.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) >= 0.5
-    return small, mask
+    return resized_view(
+        cam, mask, max(1, round(cam.width * scale)), max(1, round(cam.height * scale))
+    )
 
 
 def ray_depths(

@@ -59,11 +59,22 @@ def small_views(
     cams, out = [], []
     for cam, mask in zip(cameras, masks, strict=True):
         s = min(1.0, width / cam.width)
-        w, h = max(8, round(cam.width * s)), max(8, round(cam.height * s))
-        cams.append(cam.resized(w, h))
-        m = cv2.resize(mask.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
-        out.append(m >= 0.5)
+        small, small_mask = resized_view(
+            cam, mask, max(8, round(cam.width * s)), max(8, round(cam.height * s))
+        )
+        cams.append(small)
+        out.append(small_mask)
     return cams, out
+
+
+def resized_view(
+    cam: Camera, mask: np.ndarray | None, w: int, h: int
+) -> tuple[Camera, np.ndarray | None]:
+    """The camera and its mask [H, W] bool at w x h pixels (a pixel is in the mask when at
+    least half of its area was)."""
+    if mask is not None:
+        mask = cv2.resize(mask.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) >= 0.5
+    return cam.resized(w, h), mask
 
 
 def hull_silhouettes(
