@@ -226,9 +226,9 @@ class RayPool:
 
 
 class RaySelector:
-    """Draws each step's rays: `uniform` of them uniformly, the rest in proportion to the rays'
-    last errors (`pool.errors`, updated by `record`), so the rays still wrong -- silhouettes,
-    fine texture -- come back more often. Rays never trained on keep the initial error, the
+    """Draws each step's rays: `error_fraction` of them in proportion to the rays' last
+    errors (`pool.errors`, updated by `record`), the rest uniformly, so the rays still wrong --
+    silhouettes, fine texture -- come back more often. Rays never trained on keep the initial error, the
     mean error the field starts with, so they are drawn like average ones."""
 
     def __init__(self, pool: RayPool, error_fraction: float, generator: torch.Generator):
@@ -595,18 +595,16 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         trainer.work_dir / "previews",
         cfg.previews,
     )
+    rays_per_second = trainer.step * cfg.batch_rays / max(trainer.seconds, 1e-9)
     metrics.update(
         {
             "iterations": trainer.step,
             "train_seconds": trainer.seconds,
             "eval_seconds": time.perf_counter() - t_eval,
             "total_seconds": time.perf_counter() - t_start,
-            "rays_per_second": trainer.step * cfg.batch_rays / max(trainer.seconds, 1e-9),
+            "rays_per_second": rays_per_second,
             "samples_per_ray": sampler.samples_per_ray,
-            "samples_per_second": trainer.step
-            * cfg.batch_rays
-            * sampler.samples_per_ray
-            / max(trainer.seconds, 1e-9),
+            "samples_per_second": rays_per_second * sampler.samples_per_ray,
             "sampler": cfg.sampler,
             "train_rays_needing_field": len(pool.origins),
             "train_rays_total": pool.n_total,
