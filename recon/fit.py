@@ -228,8 +228,8 @@ class RayPool:
 class RaySelector:
     """Draws each step's rays: `error_fraction` of them in proportion to the rays' last
     errors (`pool.errors`, updated by `record`), the rest uniformly, so the rays still wrong --
-    silhouettes, fine texture -- come back more often. Rays never trained on keep the initial error, the
-    mean error the field starts with, so they are drawn like average ones."""
+    silhouettes, fine texture -- come back more often. Rays never trained on keep the initial
+    error, the mean error the field starts with, so they are drawn like average ones."""
 
     def __init__(self, pool: RayPool, error_fraction: float, generator: torch.Generator):
         self.pool, self.generator = pool, generator
