@@ -350,13 +350,15 @@ def load_template(run_dir, device: torch.device | None = None) -> tuple[Template
     return field, bg
 
 
-def refine_with_field(run: RunDir, cfg: FitConfig, field, sampler, device) -> tuple:
+def refine_with_field(
+    run: RunDir, cfg: FitConfig, field, sampler, device, progress: bool = True
+) -> tuple:
     """A proxy fused from the partly trained field's depth (recon.proxy_refine) -> (mesh,
     JSON-able stats: silhouette IoU before/after, triangles, seconds)."""
     from recon.proxy_refine import RefineConfig, refine_run
 
     mesh, stats = refine_run(
-        run, field, sampler, RefineConfig(refine_views=cfg.refine_views), device
+        run, field, sampler, RefineConfig(refine_views=cfg.refine_views), device, progress
     )
     plain = {k: v for k, v in stats.items() if isinstance(v, bool | int | float | str)}
     print(
@@ -559,7 +561,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         trainer.run(step, first_leg)
         if trainer.step < refine_at:  # stopped early on purpose
             return {"step": trainer.step}
-        mesh, stats = refine_with_field(run, cfg, field, sampler, device)
+        mesh, stats = refine_with_field(run, cfg, field, sampler, device, trainer.progress)
         write_mesh(refined_proxy, mesh)
         sampler = make_sampler(cfg, run, refined_proxy)
         pool = build_ray_pool(train_views, sampler, device)

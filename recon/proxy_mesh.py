@@ -42,12 +42,19 @@ def build_proxy(
     params: ProxyParams,
     closing: list[tuple[Camera, np.ndarray]] | None = None,
     carve: bool = False,
+    progress: bool = True,
 ):
     """Depth maps [H, W] (camera z, 0 unknown) -> the cleaned proxy (legacy o3d mesh): TSDF
-    fusion (`fuse_tsdf`, closed by `closing`), floaters outside the masks culled (when masks
-    are given), `clean_mesh`."""
+    fusion (`fuse_tsdf`, closed by `closing`; `progress`: its bar), floaters outside the masks
+    culled (when masks are given), `clean_mesh`."""
     mesh = fuse_tsdf(
-        cameras, depths, params.voxel_size, params.trunc_voxels, closing=closing, carve=carve
+        cameras,
+        depths,
+        params.voxel_size,
+        params.trunc_voxels,
+        closing=closing,
+        carve=carve,
+        progress=progress,
     )
     if masks is not None:
         mesh = cull_outside_silhouettes(mesh, cameras, masks)
@@ -104,6 +111,7 @@ def fuse_tsdf(
     closing: list[tuple[Camera, np.ndarray]] | None = None,
     real_weight: int = 4,
     carve: bool = False,
+    progress: bool = True,
 ):
     """TSDF-fuses float camera-z depth maps (run units) -> legacy o3d TriangleMesh.
 
@@ -157,7 +165,7 @@ def fuse_tsdf(
                 grid.hashmap().activate(coords)
         hashmap = grid.hashmap()
         all_blocks = hashmap.key_tensor()[hashmap.active_buf_indices().to(o3d.core.int64)]
-    for cam, depth, is_real in tqdm(views, desc="tsdf", unit="view"):
+    for cam, depth, is_real in tqdm(views, desc="tsdf", unit="view", disable=not progress):
         d = np.ascontiguousarray(depth, np.float32)
         if carve and is_real:
             if not (d > 0).any():

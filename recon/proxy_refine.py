@@ -237,6 +237,7 @@ def refine_proxy(
     cfg: RefineConfig | None = None,
     closing_mesh=None,
     device: torch.device | None = None,
+    progress: bool = True,
 ):
     """A new proxy from the field's depth in `cameras` (training views, full size; `masks`
     [H, W] bool per camera or None) -> (legacy o3d TriangleMesh, stats). `field(points [M, 3],
@@ -291,6 +292,7 @@ def refine_proxy(
         proxy_cfg,
         closing=closing_depths(cv, cf),
         carve=cfg.refine_carve,
+        progress=progress,
     )
     t_total = time.perf_counter() - t0
     shift = np.abs(np.concatenate(shifts)) if shifts else np.zeros(0)
@@ -343,6 +345,7 @@ def refine_run(
     sampler,
     cfg: RefineConfig | None = None,
     device: torch.device | None = None,
+    progress: bool = True,
 ):
     """`refine_proxy` on a run: its training views (masks when every one has a mask), its
     proxy_mesh.ply and proxy settings -> (mesh, stats). Writes nothing."""
@@ -363,4 +366,7 @@ def refine_run(
     if not run.proxy_mesh.is_file():
         raise SineError(f"{run.proxy_mesh} not found; run `sine recon` first")
     old = o3d.io.read_triangle_mesh(str(run.proxy_mesh))
-    return refine_proxy(field, sampler, cams, masks, run_proxy_params(run), old, cfg, device=device)
+    params = run_proxy_params(run)
+    return refine_proxy(
+        field, sampler, cams, masks, params, old, cfg, device=device, progress=progress
+    )
