@@ -16,7 +16,8 @@ Renders the fitted template of RUN (or its edit --edit NAME at --strength) along
 an orbit around the up axis at the captures' mean elevation and distance (--orbit N, the default
 with 60 frames), a nerfstudio camera_path.json (--camera-path), or the capture's own views
 (--views train|test|all). Writes DIR/rgb/*.png, optional DIR/depth/ and DIR/opacity/ (colour
-mapped), DIR/compare/ (template | edit, with --compare), DIR/camera_path.json (the cameras used,
+mapped), DIR/features/ (the DINO feature field of `sine features` as its first three PCA
+components in RGB; the template's field, so not with --edit), DIR/compare/ (template | edit, with --compare), DIR/camera_path.json (the cameras used,
 nerfstudio format) and an MP4 with --video.
 """
 
@@ -35,6 +36,9 @@ class RenderConfig:
     fps: float = option(24.0, "video frames per second")
     depth: bool = option(False, "also write colour-mapped depth images (DIR/depth/)")
     opacity: bool = option(False, "also write opacity images (DIR/opacity/)")
+    features: bool = option(
+        False, "also write feature-PCA images (DIR/features/; needs `sine features`, no --edit)"
+    )
     compare: bool = option(False, "also write template | edit strips (DIR/compare/; needs --edit)")
     chunk: int = option(16384, "rays rendered at once (lower it if memory is short)")
     device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
@@ -73,6 +77,19 @@ def path_cameras(run_dir, cfg: RenderConfig) -> list:
     return orbit_cameras(frames, cfg.orbit if cfg.orbit is not None else 60, cfg.width)
 
 
+def feature_images(run_dir, device: str, chunk: int):
+    """camera -> (PCA coefficients [H, W, D], object mask [H, W]) of the run's feature field."""
+    from edit.feature_maps import FeatureMapRenderer
+
+    renderer = FeatureMapRenderer(run_dir, device, render_scale=1.0, chunk=chunk)
+
+    def feature_map(camera):
+        feats, on_object = renderer(camera)
+        return feats.permute(1, 2, 0).numpy(), on_object
+
+    return feature_map
+
+
 def run(args: argparse.Namespace) -> int:
     from edit.scene import load_scene
     from render.device import torch_threads
@@ -81,10 +98,16 @@ def run(args: argparse.Namespace) -> int:
     cfg = from_args(RenderConfig, args)
     if cfg.compare and args.edit is None:
         raise SineError("--compare shows template | edit: give --edit NAME")
+    if cfg.features and args.edit is not None:
+        raise SineError(
+            "--features shows the template's DINO feature field (an edit does not change it): "
+            "drop --edit, or render the features in a separate `sine render` call"
+        )
     cameras = path_cameras(args.run, cfg)
     with torch_threads(cfg.threads):
         scene = load_scene(args.run, args.edit, args.strength, cfg.device)
         reference = load_scene(args.run, None, device=cfg.device) if cfg.compare else None
+        feature_map = feature_images(args.run, cfg.device, cfg.chunk) if cfg.features else None
         summary = render_frames(
             scene,
             cameras,
@@ -96,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
             reference=reference,
             chunk=cfg.chunk,
             progress=not args.quiet,
+            feature_map=feature_map,
         )
     video = f", video {summary['video']}" if summary["video"] else ""
     print(

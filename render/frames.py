@@ -8,6 +8,8 @@ Works with any scene object that has `render_view(camera, chunk) -> {"rgb", "opa
     DIR/depth/NAME.png      camera depth, turbo colour map over [|c| - 1, |c| + 1] (the object
                             lies in the unit sphere; c the camera centre), black where empty
     DIR/opacity/NAME.png    accumulated opacity, grey levels
+    DIR/features/NAME.png   the DINO feature field's first three PCA components as RGB (one
+                            colour range for every frame: the first frame's 1-99 percentiles)
     DIR/compare/NAME.png    reference | scene, side by side (with a reference scene)
     DIR/camera_path.json    the cameras, nerfstudio format (render/camera_paths.py)
 """
@@ -23,6 +25,7 @@ from tqdm import tqdm
 
 from render.camera_paths import write_camera_path
 from render.cameras import Camera
+from render.feature_field import pca_rgb
 from render.io import write_image
 from render.video import VideoWriter
 
@@ -67,15 +70,18 @@ def render_frames(
     reference=None,
     chunk: int = 16384,
     progress: bool = True,
+    feature_map=None,
 ) -> dict:
     """Renders every camera with `scene` (and `reference`, for the comparison strip) into
-    `out_dir`; the video shows the strip when there is a reference, else the frames."""
+    `out_dir`; the video shows the strip when there is a reference, else the frames.
+    `feature_map(camera) -> (PCA coefficients [H, W, D >= 3], object mask [H, W])` adds the
+    feature images."""
     out_dir = Path(out_dir)
     write_camera_path(out_dir / "camera_path.json", cameras, fps)
     names = [Path(c.name).stem if c.name else f"{i:04d}" for i, c in enumerate(cameras)]
     if len(set(names)) != len(names):
         names = [f"{i:04d}" for i in range(len(cameras))]
-    coverage = []
+    coverage, feature_range = [], None
     with contextlib.ExitStack() as stack:
         writer = stack.enter_context(VideoWriter(video, fps)) if video is not None else None
         pairs = list(zip(cameras, names, strict=True))
@@ -91,6 +97,14 @@ def render_frames(
             if opacity:
                 image = np.repeat(np.clip(out["opacity"], 0, 1)[..., None], 3, axis=2)
                 write_image(out_dir / "opacity" / f"{name}.png", image)
+            if feature_map is not None:
+                coeffs, on_object = feature_map(cam)
+                if feature_range is None:  # one colour mapping for the whole path
+                    sel = coeffs[..., :3][on_object] if on_object.any() else coeffs[..., :3]
+                    sel = sel.reshape(-1, 3)
+                    feature_range = np.percentile(sel, 1, 0), np.percentile(sel, 99, 0)
+                image = pca_rgb(coeffs, on_object, *feature_range, background=0.0)
+                write_image(out_dir / "features" / f"{name}.png", image)
             frame = rgb
             if reference is not None:
                 ref = np.clip(reference.render_view(cam, chunk)["rgb"], 0.0, 1.0)

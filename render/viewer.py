@@ -92,26 +92,28 @@ def build_scene(
     highlight: int | None = None,
     frustum_size: float = 0.15,
 ) -> ViewerScene:
-    """Template mesh at its place, the edited mesh beside it (shifted along x by 1.2 times the
-    template's bounding-box width, to the right on screen), the cameras' frustums around the
-    template.
+    """Template mesh at its place, the edited mesh beside it (shifted to the right on screen by
+    1.2 times the template's width seen from the viewing direction), the cameras' frustums
+    around the template.
 
     Meshes are (vertices [V, 3], triangles [T, 3], colours [V, 3] or None). The view looks at
-    the midpoint of the meshes from the cameras' mean elevation, from the side (+y or -y) where
-    the cameras are on average, perpendicular to the side-by-side axis.
+    the midpoint of the meshes from the cameras' mean elevation and from the azimuth of the
+    highlighted (edited) view, or of the first capture; the edited mesh is shifted to the right
+    on screen, perpendicular to the viewing direction.
     """
     tv, tt, tc = template
     scene = ViewerScene()
     if cameras:
-        scene.front = side_view_direction(cameras)
+        toward = cameras[highlight] if highlight is not None else None
+        scene.front = view_direction(cameras, toward)
     scene.geometries.append(o3d_mesh(tv, tt, tc))
     lo, hi = tv.min(0), tv.max(0)
     centre = 0.5 * (lo + hi)
     if edited is not None:
         ev, et, ec = edited
-        # along +x when looking from -y, along -x from +y: the edit is on the right on screen
-        right = -1.0 if scene.front[1] > 0 else 1.0
-        shift = np.array([right * 1.2 * float(hi[0] - lo[0]), 0.0, 0.0])
+        right = screen_right(scene.front, scene.up)
+        extent = float(np.ptp(np.asarray(tv, np.float64) @ right))
+        shift = 1.2 * extent * right  # the edit on the right on screen
         scene.toggled.append(o3d_mesh(np.asarray(ev) + shift, et, ec))
         centre = centre + 0.5 * shift
     scene.lookat = centre
@@ -120,13 +122,24 @@ def build_scene(
     return scene
 
 
-def side_view_direction(cameras: list[Camera]) -> np.ndarray:
-    """Unit vector towards the eye: the captures' mean elevation, on the -y or +y side."""
+def view_direction(cameras: list[Camera], toward: Camera | None = None) -> np.ndarray:
+    """Unit vector towards the eye [3]: the captures' mean elevation, at the azimuth of `toward`
+    (the edited view: the edit is seen as the user drew it) or else of the first capture."""
     centres = np.array([c.center for c in cameras])
     dist = np.linalg.norm(centres, axis=1)
     elev = float(np.mean(np.arcsin(np.clip(centres[:, 2] / np.maximum(dist, 1e-9), -1, 1))))
-    side = 1.0 if centres[:, 1].mean() > 0 else -1.0
-    return np.array([0.0, side * np.cos(elev), np.sin(elev)])
+    c = (toward or cameras[0]).center
+    az = float(np.arctan2(c[1], c[0]))
+    return np.array([np.cos(elev) * np.cos(az), np.cos(elev) * np.sin(az), np.sin(elev)])
+
+
+def screen_right(front: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """The horizontal direction [3] that points right on screen for a viewer whose eye is along
+    `front` (looking along -front) with `up` up."""
+    right = np.cross(-np.asarray(front, np.float64), np.asarray(up, np.float64))
+    right[2] = 0.0  # keep the side-by-side shift horizontal
+    norm = np.linalg.norm(right)
+    return right / norm if norm > 1e-9 else np.array([1.0, 0.0, 0.0])
 
 
 def _setup(vis, scene: ViewerScene, zoom: float) -> None:

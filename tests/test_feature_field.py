@@ -246,3 +246,24 @@ def test_without_held_out_views_metrics_say_training_view(run_root, tmp_path, ca
     assert "ignoring the DINO cache" in capsys.readouterr().out
     assert m["train_view_views"] == 1 and "train_view_centred_cosine" in m
     assert not any(k.startswith("heldout") for k in m)
+
+
+def test_sine_render_writes_feature_pca_images(run_root, tmp_path):
+    import cv2
+
+    import sine_cli
+    from render.io import read_image, read_mask
+
+    out = tmp_path / "orbit"
+    argv = ["render", str(run_root), "--out", str(out), "--views", "test", "--features"]
+    assert sine_cli.main(argv + ["--quiet", "--threads", "1"]) == 0
+    stems = sorted(p.stem for p in (out / "features").glob("*.png"))
+    assert stems == sorted(p.stem for p in (out / "rgb").glob("*.png")) and stems
+    image = read_image(out / "features" / f"{stems[0]}.png")
+    mask = read_mask(run_root / "masks" / f"{stems[0]}.png")
+    near = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    assert image[~near].max() < 0.05  # black off the object (its rim may differ by a pixel)
+    on = image[mask & (image.max(axis=2) > 0.05)]
+    assert len(on) > 0.5 * mask.sum() and on.std(axis=0).max() > 0.1  # the parts differ
+    # the feature field is the template's: not with --edit
+    assert sine_cli.main(argv + ["--edit", "any"]) == 2

@@ -24,7 +24,7 @@ from render.evaluation import image_metrics, to_run_frame
 from render.io import read_image, write_json
 from render.mesh_export import denormalize_points, save_colored_mesh, surface_colors
 from render.video import video_info, write_video
-from render.viewer import build_scene, screenshot
+from render.viewer import build_scene, screen_right, screenshot, view_direction
 
 
 def _ring(n, elevation_deg, distance, size=(64, 48)):
@@ -271,6 +271,18 @@ def test_viewer_screenshot_shows_both_meshes_headless(tmp_path):
     assert image[labels == right][:, 2].mean() > image[labels == right][:, 0].mean()  # blue
     orange = (image[..., 0] > 0.8) & (np.abs(image[..., 1] - 0.35) < 0.15) & (image[..., 2] < 0.2)
     assert orange.sum() > 5  # the highlighted frustum
+
+
+def test_viewer_looks_from_the_edited_view():
+    cams = _ring(8, 25.0, 2.5)
+    front = view_direction(cams, cams[3])
+    c = cams[3].center
+    assert np.isclose(np.arctan2(front[1], front[0]), np.arctan2(c[1], c[0]))
+    assert np.isclose(np.linalg.norm(front), 1.0)
+    assert np.isclose(np.degrees(np.arcsin(front[2])), 25.0, atol=0.5)  # the ring's elevation
+    # eye on -y looking at the origin with +z up: +x is right on screen
+    np.testing.assert_allclose(screen_right(np.array([0, -1.0, 0.2]), np.array([0, 0, 1.0])),
+                               [1.0, 0.0, 0.0], atol=1e-12)  # fmt: skip
 
 
 def test_sine_view_screenshot_and_no_display(tiny_fitted_run, tmp_path, monkeypatch):
