@@ -137,6 +137,14 @@ class ReconConfig:
         "poses: self-check: largest mean SfM reprojection error (pixels at the SfM image size)",
         low=0.0,
     )
+    dataset_depth_tolerance: float = option(
+        0.025,
+        "poses: the capture's depth maps are used with estimated poses only when one scale "
+        "takes them to the poses' units within this relative deviation (median over the "
+        "sparse points, and each view's median); otherwise they are dropped with a warning "
+        "and the depth stage uses the visual hull and stereo",
+        low=0.0,
+    )
     target_radius: float = option(
         0.85, "normalize: radius of the object's bounding sphere in run units", low=0.01
     )
@@ -476,8 +484,9 @@ class Pipeline:
         return info, frames, result
 
     def use_sfm(self, views: list[dict], result, frames: list[Camera], info: dict) -> None:
-        """Writes the SfM cameras; dataset depth into SfM units; undistortion in place."""
-        from recon.poses import depth_scale_to_sfm, rescale_depth, undistort_in_place
+        """Writes the SfM cameras; dataset depth into SfM units when one scale fits it (else it
+        is dropped, `verify_dataset_depth`); undistortion in place."""
+        from recon.poses import depth_scale_to_sfm, undistort_depth_in_place, undistort_in_place
 
         by_name = {r["name"]: r for r in views}
         depth_paths = {
@@ -486,31 +495,50 @@ class Pipeline:
             if by_name[r["name"]].get("depth")
         }
         if depth_paths:
-            factor = depth_scale_to_sfm(result.observations, depth_paths, result.cameras)
-            if factor is None:
-                raise SineError(
-                    "cannot relate the capture's depth maps to the SfM frame (too few sparse points)"
-                )
-            rescale_depth(list(depth_paths.values()), factor)
-            info["dataset_depth_to_sfm_scale"] = factor
+            fit = depth_scale_to_sfm(
+                result.observations,
+                depth_paths,
+                result.cameras,
+                tolerance=self.cfg.dataset_depth_tolerance,
+            )
+            self.verify_dataset_depth(fit, list(depth_paths.values()), "sfm", info)
         if np.any(result.distortion != 0):
             for c in frames:
                 undistort_in_place(
                     [self.run.image_path(c.name)], c, result.distortion, nearest=False
                 )
                 undistort_in_place([self.run.mask_path(c.name)], c, result.distortion, nearest=True)
+                if info.get("dataset_depth_verified") and c.name in depth_paths:
+                    undistort_depth_in_place(depth_paths[c.name], c, result.distortion)
             info["undistorted_distortion"] = [float(x) for x in result.distortion]
         self.run.save_cameras(CameraSet(frames=frames, extra={"source_format": "sfm"}))
+
+    def verify_dataset_depth(self, fit, depth_paths: list[Path], poses: str, info: dict) -> None:
+        """The capture's depth maps into the units of the estimated poses when one scale fits
+        them (recon.poses.DepthScaleFit); otherwise they are dropped (`dataset_depth_verified`
+        false in the stage info: the depth stage then uses the visual hull and stereo)."""
+        from recon.poses import rescale_depth
+
+        info.update(fit.to_dict())
+        if fit.consistent():
+            rescale_depth(depth_paths, fit.factor)
+            info[f"dataset_depth_to_{poses}_scale"] = fit.factor
+            return
+        print(
+            f"[recon] poses: WARNING: the capture's depth maps do not agree with the {poses} "
+            f"poses ({fit.summary()}; allowed {fit.tolerance:.1%}, --dataset-depth-tolerance): "
+            "dropped, the depth stage uses the visual hull and stereo"
+        )
 
     def turntable_poses(self, views: list[dict], sfm) -> dict:
         """Every view posed by the turntable model (recon.turntable), seeded by the largest SfM
         model whose views are consistent; writes cameras.json; stage info."""
-        from recon.poses import rescale_depth
+        from recon.poses import fit_depth_scale
         from recon.selfcheck import check_poses
         from recon.turntable import (
             TurntableParams,
             choose_seed,
-            depth_scale_from_rims,
+            rim_depth_ratios,
             solve_turntable,
         )
         from render.device import torch_threads
@@ -556,13 +584,17 @@ class Pipeline:
         }
         depth_paths = [self.run.depth_path(n) for n in names if by_name[n].get("depth")]
         if depth_paths:
-            factor = depth_scale_from_rims(
+            ratios = rim_depth_ratios(
                 frames,
                 [read_mask(self.run.mask_path(c.name)) for c in frames],
                 [self.run.depth_path(c.name) for c in frames],
             )
-            rescale_depth(depth_paths, factor)
-            info["dataset_depth_to_turntable_scale"] = factor
+            self.verify_dataset_depth(
+                fit_depth_scale(ratios, self.cfg.dataset_depth_tolerance),
+                depth_paths,
+                "turntable",
+                info,
+            )
         self.run.save_cameras(CameraSet(frames=frames, extra={"source_format": "turntable"}))
         verdict = check_poses(frames, self.masks_for(frames), self.thresholds(), turntable=True)
         if not result.angles_observable:
@@ -623,6 +655,15 @@ class Pipeline:
         by_name = {r["name"]: r for r in self.views()}
         method = self.cfg.depth_method
         have = all(by_name.get(c.name, {}).get("depth") for c in cams)
+        poses = self.state["stages"].get("poses", {})
+        if have and poses.get("dataset_depth_verified") is False:
+            if method == "dataset":
+                raise SineError(
+                    "--depth-method dataset: the capture's depth maps were dropped, they do not "
+                    f"agree with the estimated poses ({poses.get('dataset_depth_check')}); use "
+                    "--depth-method auto, or raise --dataset-depth-tolerance"
+                )
+            have = False
         if method == "dataset" and not have:
             raise SineError("--depth-method dataset: the capture has no depth for every view")
         (self.run.root / "visual_hull.npz").unlink(missing_ok=True)  # cams may have changed

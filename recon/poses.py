@@ -445,14 +445,27 @@ def _observations(reconstruction) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     return out
 
 
-def undistort_in_place(paths: list[Path], camera: Camera, dist: np.ndarray, nearest: bool) -> None:
-    """Undistorts images/masks with the pinhole K of `camera` kept (pixel centres at +0.5)."""
+def _undistort_maps(camera: Camera, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     K = camera.K.copy()
     K[0, 2] -= 0.5  # OpenCV puts pixel centres at integers
     K[1, 2] -= 0.5
-    map1, map2 = cv2.initUndistortRectifyMap(
+    return cv2.initUndistortRectifyMap(
         K, np.asarray(dist, np.float64), None, K, (camera.width, camera.height), cv2.CV_32FC1
     )
+
+
+def undistort_depth_in_place(path: Path, camera: Camera, dist: np.ndarray) -> None:
+    """Undistorts a stored depth map like `undistort_in_place` (nearest; 0 where no source)."""
+    depth = read_depth(path)
+    if depth.shape != (camera.height, camera.width):
+        camera = camera.resized(depth.shape[1], depth.shape[0])
+    map1, map2 = _undistort_maps(camera, dist)
+    write_depth(path, cv2.remap(depth, map1, map2, cv2.INTER_NEAREST, borderValue=0.0))
+
+
+def undistort_in_place(paths: list[Path], camera: Camera, dist: np.ndarray, nearest: bool) -> None:
+    """Undistorts images/masks with the pinhole K of `camera` kept (pixel centres at +0.5)."""
+    map1, map2 = _undistort_maps(camera, dist)
     interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
     for path in paths:
         raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -463,11 +476,92 @@ def undistort_in_place(paths: list[Path], camera: Camera, dist: np.ndarray, near
                 raise SineError(f"could not write {path}")
 
 
+@dataclass
+class DepthScaleFit:
+    """One factor taking the capture's depth maps into the poses' units, and how well it fits.
+
+    ratio = pose camera z / dataset depth at a point; `residual` = median |ratio / factor - 1|
+    over all points; a view's offset = |its median ratio / factor - 1| (views with at least
+    `min_view_points` points). Depth from another camera model, inverse depth, a scale per view
+    or garbage gives a large residual or a large worst offset.
+    """
+
+    factor: float | None  # median ratio (None: fewer than 10 points)
+    points: int
+    residual: float  # median relative deviation from the factor
+    within: float  # fraction of points within `tolerance` of the factor
+    tolerance: float
+    worst_view: str | None  # the view whose median ratio is furthest from the factor
+    worst_view_offset: float
+
+    def consistent(self) -> bool:
+        """The factor fits every view within `tolerance`."""
+        return (
+            self.factor is not None
+            and self.residual <= self.tolerance
+            and self.worst_view_offset <= self.tolerance
+        )
+
+    def summary(self) -> str:
+        if self.factor is None:
+            return f"{self.points} sparse points with depth (< 10)"
+        return (
+            f"scale {self.factor:.4g} from {self.points} points: median deviation "
+            f"{self.residual:.1%}, {self.within:.0%} of the points within {self.tolerance:.0%}, "
+            f"worst view {self.worst_view} off by {self.worst_view_offset:.1%}"
+        )
+
+    def to_dict(self) -> dict:
+        """The stage-info keys (recon_report.json); no number when there was no fit."""
+        fitted = self.factor is not None
+        return {
+            "dataset_depth_verified": self.consistent(),
+            "dataset_depth_check": self.summary(),
+            "dataset_depth_scale_points": self.points,
+            "dataset_depth_scale_residual": round(self.residual, 5) if fitted else None,
+            "dataset_depth_within_tolerance": round(self.within, 4),
+            "dataset_depth_tolerance": self.tolerance,
+            "dataset_depth_worst_view": self.worst_view,
+            "dataset_depth_worst_view_offset": round(self.worst_view_offset, 5) if fitted else None,
+        }
+
+
+def fit_depth_scale(
+    ratios: dict[str, np.ndarray], tolerance: float = 0.05, min_view_points: int = 5
+) -> DepthScaleFit:
+    """`DepthScaleFit` of per-view ratios [M_i] (pose z / dataset depth, all > 0)."""
+    ratios = {k: np.asarray(v, np.float64) for k, v in ratios.items() if len(v)}
+    flat = np.concatenate(list(ratios.values())) if ratios else np.zeros(0)
+    if len(flat) < 10:
+        return DepthScaleFit(None, len(flat), np.inf, 0.0, tolerance, None, np.inf)
+    factor = float(np.median(flat))
+    dev = np.abs(flat / factor - 1.0)
+    offsets = {
+        k: abs(float(np.median(v)) / factor - 1.0)
+        for k, v in ratios.items()
+        if len(v) >= min_view_points
+    }
+    worst = max(offsets, key=offsets.get) if offsets else None
+    return DepthScaleFit(
+        factor=factor,
+        points=len(flat),
+        residual=float(np.median(dev)),
+        within=float(np.mean(dev <= tolerance)),
+        tolerance=tolerance,
+        worst_view=worst,
+        worst_view_offset=offsets[worst] if worst else 0.0,
+    )
+
+
 def depth_scale_to_sfm(
-    observations: dict, depth_paths: dict[str, Path], cameras: list[Camera]
-) -> float | None:
-    """Median ratio SfM-z / dataset-depth at the sparse keypoints: puts dataset depth in SfM units."""
-    ratios = []
+    observations: dict,
+    depth_paths: dict[str, Path],
+    cameras: list[Camera],
+    tolerance: float = 0.05,
+) -> DepthScaleFit:
+    """The factor SfM-z / dataset-depth at the sparse keypoints (`fit_depth_scale`): puts
+    dataset depth in SfM units, with how consistently it does so."""
+    ratios = {}
     for cam in cameras:
         path = depth_paths.get(cam.name)
         if path is None or not path.is_file() or cam.name not in observations:
@@ -481,12 +575,9 @@ def depth_scale_to_sfm(
         rows = np.clip((uv[:, 1] * sy).astype(int), 0, depth.shape[0] - 1)
         d = depth[rows, cols]
         _, z = cam.project(xyz)
-        ok = (d > 0) & (z > 0)
-        ratios.append(z[ok] / d[ok])
-    if not ratios:
-        return None
-    ratios = np.concatenate(ratios)
-    return float(np.median(ratios)) if len(ratios) >= 10 else None
+        ok = (d > 0) & (z > 0) & np.isfinite(d)
+        ratios[cam.name] = z[ok] / d[ok]
+    return fit_depth_scale(ratios, tolerance)
 
 
 def rescale_depth(paths: list[Path], factor: float) -> None:

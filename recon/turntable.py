@@ -515,29 +515,24 @@ def choose_seed(models: list, names: list[str], masks: list[np.ndarray], thresho
     return best
 
 
-def depth_scale_from_rims(cameras: list[Camera], masks: list[np.ndarray], depth_paths) -> float:
-    """Factor taking the capture's depth maps into the units of `cameras`: the median ratio of
-    the visual hull's depth to theirs on the rim of each mask (2 pixels wide), where the hull
-    touches the object."""
+def rim_depth_ratios(
+    cameras: list[Camera], masks: list[np.ndarray], depth_paths
+) -> dict[str, np.ndarray]:
+    """Per view name: the ratios [M] of the visual hull's depth to the capture's depth on the
+    rim of the mask (2 pixels wide), where the hull touches the object."""
     from recon.depth import raycast_views, visual_hull_mesh
     from render.io import read_depth
 
     verts, faces, _ = visual_hull_mesh(cameras, masks, resolution=96)
-    ratios = []
+    ratios = {}
     kernel = np.ones((5, 5), np.uint8)
-    for mask, hull, path in zip(
-        masks, raycast_views(verts, faces, cameras), depth_paths, strict=True
+    for cam, mask, hull, path in zip(
+        cameras, masks, raycast_views(verts, faces, cameras), depth_paths, strict=True
     ):
         depth = read_depth(path)
         if depth.shape != mask.shape:
             depth = cv2.resize(depth, mask.shape[::-1], interpolation=cv2.INTER_NEAREST)
         rim = mask & ~(cv2.erode(mask.astype(np.uint8), kernel) > 0)
-        ok = rim & (hull > 0) & (depth > 0)
-        ratios.append(hull[ok] / depth[ok])
-    ratios = np.concatenate(ratios) if ratios else np.zeros(0)
-    if len(ratios) < 10:
-        raise SineError(
-            "cannot relate the capture's depth maps to the turntable poses (no rim pixels); "
-            "use --depth-method visual_hull+stereo"
-        )
-    return float(np.median(ratios))
+        ok = rim & (hull > 0) & (depth > 0) & np.isfinite(depth)
+        ratios[cam.name] = hull[ok] / depth[ok]
+    return ratios
