@@ -8,21 +8,26 @@ Stages (each the library function behind its own command; each skips finished wo
     features  the DINO feature field                                          (`sine features`)
     masks     semantic masks of the part painted in view K, scored against
               the ground-truth part labels                                    (`sine masks`)
-    target    the editing target: the GT geometric edit's image of view K,
+    target    the geometric editing target: the GT geometric edit's image of view K,
               as an RGBA target (edit/targets.py)                             (`sine target`)
     edit      the geometric edit learnt from that one image                   (`sine edit`)
-    render    orbit videos of the template, the edit and template | edit      (`sine render`)
-    export    the template and the edited mesh, coloured, as GLB              (`sine export`)
-    view      a viewer screenshot of both meshes and the cameras              (`sine view`)
-    eval      held-out views against the ground-truth edit                    (`sine eval`)
-    summary   OUT/summary.png (views x template | edit | ground truth, with the numbers),
-              OUT/summary.html (the pictures and videos next to it), OUT/demo_summary.json
+    texture target
+              the texture target: view K's capture with the part the GT texture edit
+              recolours (its GT label) turned by the same hue                 (`sine target
+                                                                               --recolor`)
+    texture   the texture edit learnt from that one image           (`sine edit --mode texture`)
+    render    orbit videos of the template, both edits and template | geometric | texture
+                                                                              (`sine render`)
+    export    the template and both edited meshes, coloured, as GLB           (`sine export`)
+    view      a viewer screenshot of the template and the geometric edit, with the cameras
+                                                                              (`sine view`)
+    eval      held-out views against the ground-truth edits                   (`sine eval`)
+    summary   OUT/summary.png (views x template | geometric edit | its ground truth | texture
+              edit | its ground truth, with the numbers), OUT/summary.html (the pictures and
+              videos next to it), OUT/demo_summary.json
 
 Everything lands under OUT/. `--fast` renders fewer views at a lower working resolution and
 trains fewer steps (the end-to-end test runs it).
-
-TODO(texture edit): one texture edit from a `sine target --recolor` target (GT: the synth's
-edits/texture) once texture editing is built; not faked here.
 """
 
 from __future__ import annotations
@@ -44,6 +49,7 @@ from render.io import read_json, read_label_map, read_mask, require_directory, w
 # The part painted by default: the one the object's ground-truth geometric edit stretches.
 DEFAULT_PART = {"toycar": "cabin", "figurine": "head"}
 EDIT_NAME = "geometric"  # RUN/edits/geometric, learnt from the synth's edits/geometric view K
+TEXTURE_NAME = "texture"  # RUN/edits/texture, learnt from a recoloured capture of view K
 MASKS_EDIT = "demo"  # RUN/edits/demo/semantic_masks (the masks stage)
 EDIT_AZIMUTH = 110.0  # degrees: the default view K is the training view nearest this (a side view)
 
@@ -61,6 +67,7 @@ FULL = {
     "fit": {"iterations": 600, "batch_rays": 1024},
     "features": {},
     "edit": {},
+    "texture": {},
 }
 FAST = {
     "views": 24,
@@ -76,6 +83,7 @@ FAST = {
     "fit": {"iterations": 300, "batch_rays": 512, "log2_table": 15, "previews": 2},
     "features": {"iterations": 150, "batch_rays": 2048, "log2_table": 13, "previews": 1},
     "edit": {"iterations": 120, "previews": 0},
+    "texture": {"iterations": 80, "previews": 0},
 }
 
 
@@ -157,6 +165,7 @@ def stage_configs(cfg: DemoConfig) -> dict:
     from edit.feature_field_fit import FeaturesConfig
     from edit.geometry_edit import GeometryEditConfig
     from edit.part_masks import MasksConfig
+    from edit.texture_edit import TextureEditConfig
     from recon.fit import FitConfig
     from recon.ingest import IngestConfig
     from recon.pipeline import ReconConfig
@@ -179,8 +188,9 @@ def stage_configs(cfg: DemoConfig) -> dict:
         "features": FeaturesConfig(**dev, **base["features"]),
         "masks": MasksConfig(**dev),
         "edit": GeometryEditConfig(**dev, **base["edit"]),
+        "texture": TextureEditConfig(**dev, **base["texture"]),
     }
-    for name in ("recon", "ingest", "fit", "features", "masks", "edit"):
+    for name in ("recon", "ingest", "fit", "features", "masks", "edit", "texture"):
         validate(configs[name])  # synthesize() checks its own options
     return configs
 
@@ -276,9 +286,12 @@ def sheet_rows(frames, k: int, rows: int) -> list[int]:
     return chosen[:rows]
 
 
-def compare_views(template, edit, frames, rows: list[int], gt_dir: Path, k: int) -> dict:
-    """Renders template and edit at the views `rows`; per view the GT-edit image and mask.
-    Returns {"tiles": [row images], "views": [per-view numbers]}."""
+COLUMNS = ("template", "geometric edit", "its ground truth", "texture edit", "its ground truth")
+
+
+def compare_views(template, edits: list, frames, rows: list[int], k: int) -> dict:
+    """Renders the template and each edit at the views `rows`, next to each edit's GT image.
+    edits: [(name, scene, GT folder)]. Returns {"tiles": [row images], "views": [numbers]}."""
     from render.frames import label
     from render.io import read_image
 
@@ -287,47 +300,41 @@ def compare_views(template, edit, frames, rows: list[int], gt_dir: Path, k: int)
     for i in rows:
         cam = frames[i]
         stem = Path(cam.name).stem
-        gt = resize(read_image(gt_dir / "images" / f"{stem}.png"), cam.width, cam.height)
-        gt_mask = resize(
-            read_mask(gt_dir / "masks" / f"{stem}.png").astype(np.float32), cam.width, cam.height
-        )
-        before, after = template.render_view(cam), edit.render_view(cam)
-        b_rgb, a_rgb = np.clip(before["rgb"], 0, 1), np.clip(after["rgb"], 0, 1)
-        row = {
-            "view": cam.name,
-            "index": i,
-            "role": "edited view K" if i == k else ("held-out" if cam.split == "test" else "train"),
-            "edit_silhouette_iou": silhouette_iou(after["opacity"], gt_mask),
-            "template_silhouette_iou": silhouette_iou(before["opacity"], gt_mask),
-            "edit_psnr_object": object_psnr(a_rgb, gt, after["opacity"], gt_mask),
-            "template_psnr_object": object_psnr(b_rgb, gt, before["opacity"], gt_mask),
-        }
-        numbers.append(row)
+        role = "edited view K" if i == k else ("held-out" if cam.split == "test" else "train")
+        before = template.render_view(cam)
+        b_rgb = np.clip(before["rgb"], 0, 1)
+        row = {"view": cam.name, "index": i, "role": role}
         tag = f"{stem} {'K' if i == k else ('held-out' if cam.split == 'test' else 'train')}"
-        tiles.append(
-            np.concatenate(
-                [
-                    label(b_rgb, f"{tag}"),
-                    gap,
-                    label(a_rgb, f"edit IoU {row['edit_silhouette_iou']:.2f}"),
-                    gap,
-                    label(gt, "ground truth"),
-                ],
-                axis=1,
+        parts = [label(b_rgb, tag)]
+        for name, scene, gt_dir in edits:
+            gt = resize(read_image(gt_dir / "images" / f"{stem}.png"), cam.width, cam.height)
+            gt_mask = read_mask(gt_dir / "masks" / f"{stem}.png").astype(np.float32)
+            gt_mask = resize(gt_mask, cam.width, cam.height)
+            after = scene.render_view(cam)
+            a_rgb = np.clip(after["rgb"], 0, 1)
+            row[f"{name}_silhouette_iou"] = silhouette_iou(after["opacity"], gt_mask)
+            row[f"template_silhouette_iou_{name}"] = silhouette_iou(before["opacity"], gt_mask)
+            row[f"{name}_psnr_object"] = object_psnr(a_rgb, gt, after["opacity"], gt_mask)
+            row[f"template_psnr_object_{name}"] = object_psnr(b_rgb, gt, before["opacity"], gt_mask)
+            caption = (
+                f"IoU {row[f'{name}_silhouette_iou']:.2f}"
+                if name == "geometric"
+                else f"{row[f'{name}_psnr_object']:.1f} dB"
             )
-        )
+            parts += [gap, label(a_rgb, caption), gap, label(gt, "ground truth")]
+        numbers.append(row)
+        tiles.append(np.concatenate(parts, axis=1))
     return {"tiles": tiles, "views": numbers}
 
 
-def summary_sheet(tiles: list[np.ndarray], lines: list[str]) -> np.ndarray:
-    """Header (column names) + rows of template | edit | ground truth + the numbers."""
+def summary_sheet(tiles: list[np.ndarray], lines: list[str], tile_width: int) -> np.ndarray:
+    """Header (column names) + rows of template | each edit | its ground truth + the numbers."""
     width = tiles[0].shape[1]
-    third = (width - 4) // 3
     header = np.full((20, width, 3), 255, np.uint8)
-    for j, name in enumerate(("template", "edit (learnt)", "ground-truth edit")):
+    for j, name in enumerate(COLUMNS[: (width + 2) // (tile_width + 2)]):
         cv2.putText(
-            header, name, (j * (third + 2) + 4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1,
-            cv2.LINE_AA,
+            header, name, (j * (tile_width + 2) + 4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+            (0, 0, 0), 1, cv2.LINE_AA,
         )  # fmt: skip
     header = header.astype(np.float32) / 255.0
     sep = np.ones((2, width, 3), np.float32)
@@ -336,20 +343,16 @@ def summary_sheet(tiles: list[np.ndarray], lines: list[str]) -> np.ndarray:
     return np.concatenate([header, *body, text_strip(lines, width, scale)], axis=0)
 
 
-def compare_video(left_dir: Path, right_dir: Path, path: Path, fps: float) -> int:
-    """template | edit video from two folders of frames with the same names; frame count."""
-    from render.frames import side_by_side
+def compare_video(dirs: list[Path], path: Path, fps: float) -> int:
+    """Side-by-side video of folders of frames with the same names (left to right); frames."""
+    from render.frames import strip
     from render.io import read_image
     from render.video import VideoWriter
 
-    names = sorted(p.name for p in (left_dir / "rgb").glob("*.png"))
+    names = sorted(p.name for p in (dirs[0] / "rgb").glob("*.png"))
     with VideoWriter(path, fps) as video:
         for name in names:
-            video.write(
-                side_by_side(
-                    read_image(left_dir / "rgb" / name), read_image(right_dir / "rgb" / name)
-                )
-            )
+            video.write(strip([read_image(d / "rgb" / name) for d in dirs], [d.name for d in dirs]))
     return len(names)
 
 
@@ -358,12 +361,13 @@ def run_demo(cfg: DemoConfig) -> dict:
     from edit.feature_field_fit import distill_features
     from edit.geometry_edit import run_geometry_edit
     from edit.part_masks import semantic_masks
-    from edit.targets import before_after, write_rgba
+    from edit.targets import before_after, recolor_region, write_rgba
+    from edit.texture_edit import run_texture_edit
     from recon.fit import fit_template
     from recon.pipeline import run_recon
     from recon.rundir import RunDir
     from recon.synth import synthesize
-    from render.io import read_image, write_image
+    from render.io import read_image, write_image, write_mask
     from render.metrics import mask_iou
 
     paint_part = check_options(cfg)
@@ -371,7 +375,7 @@ def run_demo(cfg: DemoConfig) -> dict:
     configs = stage_configs(cfg)
     out = cfg.out
     capture, run = out / "capture", RunDir(out / "run")
-    gt_dir = capture / "edits" / "geometric"
+    gt_dir, tex_gt_dir = capture / "edits" / "geometric", capture / "edits" / "texture"
     k = cfg.edit_view if cfg.edit_view is not None else default_edit_view(cfg.views)
     k_name = f"r_{k:03d}.png"
     clock = Clock(out)
@@ -456,7 +460,34 @@ def run_demo(cfg: DemoConfig) -> dict:
     )
     clock.finish("edit", bool(edit_metrics.get("skipped")))
 
-    outputs = output_stages(cfg, run, gt_dir, k_run, record, clock)
+    clock.start("texture target")
+    recolor = read_json(tex_gt_dir / "edit.json")  # which part the GT recolours, by what hue
+    tex_part = int(recolor["part"])
+    run_mask_k = resize(read_mask(run.mask_path(k_name)).astype(np.float32), *size[::-1])
+    tex_region = (labels_of(k_name, size) == tex_part) & (run_mask_k > 0.5)
+    if not tex_region.any():
+        raise SineError(
+            f"the recoloured part is not visible in view {k}: choose another --edit-view"
+        )
+    tex_rgb = recolor_region(before_k, tex_region, float(recolor["hue_shift_deg"]))
+    tex_target, tex_region_png = out / "texture_target.png", out / "texture_region.png"
+    write_rgba(tex_target, tex_rgb, run_mask_k, background)
+    write_mask(tex_region_png, tex_region)
+    write_image(out / "texture_target_before_after.png", before_after(before_k, tex_rgb))
+    for c in frames:  # the part in every view (GT labels at the capture's size): `sine eval`'s
+        part = read_label_map(labels_dir / c.name) == tex_part  # inside / outside the region
+        write_mask(out / "texture_part" / (Path(c.name).stem + ".png"), part)
+    clock.finish("texture target")
+
+    clock.start("texture")
+    texture_metrics = run_texture_edit(
+        run.root, k_run, tex_target, TEXTURE_NAME, configs["texture"], tex_region_png, force=force
+    )
+    clock.finish("texture", bool(texture_metrics.get("skipped")))
+
+    outputs = output_stages(
+        cfg, run, {"geometric": gt_dir, "texture": tex_gt_dir}, k_run, record, clock
+    )
 
     summary = {
         "object": cfg.procedural,
@@ -483,6 +514,8 @@ def run_demo(cfg: DemoConfig) -> dict:
             key: edit_metrics.get(key)
             for key in ("edited_view_psnr_object", "edited_view_silhouette_iou", "train_seconds")
         },
+        "texture_part": read_json(capture / "parts.json").get(str(tex_part)),
+        "texture_iterations": texture_metrics.get("iterations"),
         "files": outputs["files"],
         "seconds": clock.seconds,
         "seconds_work": clock.work(),
@@ -495,8 +528,9 @@ def run_demo(cfg: DemoConfig) -> dict:
     return summary
 
 
-def output_stages(cfg: DemoConfig, run, gt_dir: Path, k: int, record, clock: Clock) -> dict:
-    """render / export / view / eval / summary pictures; returns numbers, files, sheet rows."""
+def output_stages(cfg: DemoConfig, run, gt_dirs: dict, k: int, record, clock: Clock) -> dict:
+    """render / export / view / eval / summary pictures; returns numbers, files, sheet rows.
+    gt_dirs: {"geometric": GT of the geometric edit, "texture": GT of the texture edit}."""
     from edit.eval_cli import evaluate
     from edit.export_cli import export_mesh
     from edit.scene import load_scene
@@ -506,39 +540,50 @@ def output_stages(cfg: DemoConfig, run, gt_dir: Path, k: int, record, clock: Clo
     from render.viewer import screenshot
 
     out = cfg.out
-    fields = mtimes(run.template / "field.pt", run.edit(EDIT_NAME) / "edit_field.pt")
+    fields = mtimes(
+        run.template / "field.pt",
+        run.edit(EDIT_NAME) / "edit_field.pt",
+        run.edit(TEXTURE_NAME) / "edit_field.pt",
+    )
     template = load_scene(run.root, None, device=cfg.device)
     edit = load_scene(run.root, EDIT_NAME, device=cfg.device)
+    texture = load_scene(run.root, TEXTURE_NAME, device=cfg.device)
     frames = run.load_cameras().frames
     files = {
         "summary_png": "summary.png",
         "summary_html": "summary.html",
         "target": "target.png",
         "target_before_after": "target_before_after.png",
+        "texture_target": "texture_target.png",
+        "texture_target_before_after": "texture_target_before_after.png",
         "template_video": "template.mp4",
         "edit_video": "edit.mp4",
+        "texture_video": "texture.mp4",
         "compare_video": "compare.mp4",
         "template_mesh": "template.glb",
         "edited_mesh": "edited.glb",
+        "textured_mesh": "texture_edited.glb",
         "viewer": "viewer.png",
     }
 
     clock.start("render")
     key = {"orbit": cfg.orbit, "fields": fields}
-    paths = [out / files[f] for f in ("template_video", "edit_video", "compare_video")]
+    videos = {"template": template, "edit": edit, "texture": texture}
+    paths = [out / files[f"{v}_video"] for v in videos] + [out / files["compare_video"]]
     skip = record.done("render", key, paths)
     if not skip:
         cams = orbit_cameras(frames, cfg.orbit)
         fps = max(8.0, cfg.orbit / 5.0)  # one turn in about 5 s
-        render_frames(template, cams, out / "orbit" / "template", video=paths[0], fps=fps)
-        render_frames(edit, cams, out / "orbit" / "edit", video=paths[1], fps=fps)
-        compare_video(out / "orbit" / "template", out / "orbit" / "edit", paths[2], fps)
+        for name, scene in videos.items():
+            video = out / files[f"{name}_video"]
+            render_frames(scene, cams, out / "orbit" / name, video=video, fps=fps)
+        compare_video([out / "orbit" / v for v in videos], paths[-1], fps)
         record.record("render", key)
     clock.finish("render", skip)
 
     clock.start("export")
     key = {"fields": fields}
-    meshes = {"template_mesh": template, "edited_mesh": edit}
+    meshes = {"template_mesh": template, "edited_mesh": edit, "textured_mesh": texture}
     skip = record.done("export", key, [out / files[f] for f in meshes])
     if not skip:
         for f, scene in meshes.items():
@@ -560,36 +605,54 @@ def output_stages(cfg: DemoConfig, run, gt_dir: Path, k: int, record, clock: Clo
     clock.finish("view", skip)
 
     clock.start("eval")
-    key = {"fields": fields, "gt": str(gt_dir)}
-    evals = {"edit": out / "eval_edit.json", "template": out / "eval_template_vs_gt_edit.json"}
-    skip = record.done("eval", key, list(evals.values()))
+    key = {"fields": fields, "gt": {k: str(v) for k, v in gt_dirs.items()}}
+    evals = {  # file: (edit name, ground truth, edit-region masks)
+        "eval_edit.json": (EDIT_NAME, gt_dirs["geometric"], None),
+        "eval_template_vs_gt_edit.json": (None, gt_dirs["geometric"], None),
+        "eval_texture.json": (TEXTURE_NAME, gt_dirs["texture"], out / "texture_part"),
+        "eval_template_vs_gt_texture.json": (None, gt_dirs["texture"], out / "texture_part"),
+    }
+    skip = record.done("eval", key, [out / f for f in evals])
     if not skip:
-        for which, path in evals.items():
-            name = EDIT_NAME if which == "edit" else None
-            result = evaluate(run.root, name, gt_dir, split="test", device=cfg.device)
-            write_json(path, result)
+        for f, (name, gt, regions) in evals.items():
+            result = evaluate(run.root, name, gt, regions, split="test", device=cfg.device)
+            write_json(out / f, result)
         record.record("eval", key)
     clock.finish("eval", skip)
-    mean = {which: read_json(path)["mean"] for which, path in evals.items()}
+    mean = {f: read_json(out / f)["mean"] for f in evals}
 
     clock.start("summary")
     rows = sheet_rows(frames, k, (FAST if cfg.fast else FULL)["rows"])
-    views = compare_views(template, edit, frames, rows, gt_dir, k)
+    edits = [("geometric", edit, gt_dirs["geometric"]), ("texture", texture, gt_dirs["texture"])]
+    views = compare_views(template, edits, frames, rows, k)
     held = [v for v in views["views"] if v["role"] == "held-out"]
     edited = views["views"][0]
+    geo, geo_t = mean["eval_edit.json"], mean["eval_template_vs_gt_edit.json"]
+    tex, tex_t = mean["eval_texture.json"], mean["eval_template_vs_gt_texture.json"]
     numbers = {
-        "edit_heldout_psnr": mean["edit"].get("psnr"),
-        "edit_heldout_psnr_object": mean["edit"].get("psnr_object"),
-        "edit_heldout_ssim": mean["edit"].get("ssim"),
-        "template_vs_gt_edit_heldout_psnr": mean["template"].get("psnr"),
-        "template_vs_gt_edit_heldout_psnr_object": mean["template"].get("psnr_object"),
-        "edit_heldout_silhouette_iou": float(np.mean([v["edit_silhouette_iou"] for v in held])),
-        "template_vs_gt_edit_heldout_silhouette_iou": float(
-            np.mean([v["template_silhouette_iou"] for v in held])
+        "edit_heldout_psnr": geo.get("psnr"),
+        "edit_heldout_psnr_object": geo.get("psnr_object"),
+        "edit_heldout_ssim": geo.get("ssim"),
+        "template_vs_gt_edit_heldout_psnr": geo_t.get("psnr"),
+        "template_vs_gt_edit_heldout_psnr_object": geo_t.get("psnr_object"),
+        "edit_heldout_silhouette_iou": float(
+            np.mean([v["geometric_silhouette_iou"] for v in held])
         ),
-        "edited_view_silhouette_iou": edited["edit_silhouette_iou"],
-        "edited_view_psnr_object": edited["edit_psnr_object"],
-        "template_vs_gt_edit_edited_view_silhouette_iou": edited["template_silhouette_iou"],
+        "template_vs_gt_edit_heldout_silhouette_iou": float(
+            np.mean([v["template_silhouette_iou_geometric"] for v in held])
+        ),
+        "edited_view_silhouette_iou": edited["geometric_silhouette_iou"],
+        "edited_view_psnr_object": edited["geometric_psnr_object"],
+        "template_vs_gt_edit_edited_view_silhouette_iou": edited[
+            "template_silhouette_iou_geometric"
+        ],
+        "texture_heldout_psnr_object": tex.get("psnr_object"),
+        "texture_heldout_psnr_part": tex.get("psnr_region"),
+        "texture_heldout_psnr_rest": tex.get("psnr_outside_region"),
+        "template_vs_gt_texture_heldout_psnr_object": tex_t.get("psnr_object"),
+        "template_vs_gt_texture_heldout_psnr_part": tex_t.get("psnr_region"),
+        "template_vs_gt_texture_heldout_psnr_rest": tex_t.get("psnr_outside_region"),
+        "texture_edited_view_psnr_object": edited["texture_psnr_object"],
         "views_compared": views["views"],
     }
     clock.finish("summary", False)
@@ -611,6 +674,13 @@ def summary_lines(s: dict) -> list[str]:
         f"edited view {Path(s['edit_view']).stem}: sil. IoU {f(s['edited_view_silhouette_iou'], 3)}"
         f" (template {f(s['template_vs_gt_edit_edited_view_silhouette_iou'], 3)}), object PSNR "
         f"{f(s['edited_view_psnr_object'])} dB",
+        f"texture edit ({s['texture_part']} recoloured) vs GT, held-out: object PSNR "
+        f"{f(s['texture_heldout_psnr_object'])} dB (template "
+        f"{f(s['template_vs_gt_texture_heldout_psnr_object'])})",
+        f"  on the {s['texture_part']} {f(s['texture_heldout_psnr_part'])} dB (template "
+        f"{f(s['template_vs_gt_texture_heldout_psnr_part'])}), elsewhere "
+        f"{f(s['texture_heldout_psnr_rest'])} dB (template "
+        f"{f(s['template_vs_gt_texture_heldout_psnr_rest'])})",
     ]
 
 
@@ -619,13 +689,15 @@ def write_html(out: Path, s: dict, tiles: list[np.ndarray]) -> None:
     from render.io import write_image, write_text_atomic
 
     lines = summary_lines(s)
-    write_image(out / "summary.png", summary_sheet(tiles, lines))
+    tile_width = s["run_size"][0]
+    write_image(out / "summary.png", summary_sheet(tiles, lines, tile_width))
     files = s["files"]
     rel = {
         "recon contact sheet": "run/recon_contact_sheet.png",
         "semantic masks": f"run/edits/{MASKS_EDIT}/semantic_masks/overlay_contact_sheet.png",
         "shape prior": f"run/edits/{EDIT_NAME}/prior_preview.png",
         "edited view: template | edit | target": f"run/edits/{EDIT_NAME}/edited_view.png",
+        "texture edit, edited view": f"run/edits/{TEXTURE_NAME}/edited_view.png",
     }
     rows = "".join(
         f"<tr><td>{html.escape(k)}</td><td>{v:.4g}</td></tr>"
@@ -637,13 +709,15 @@ def write_html(out: Path, s: dict, tiles: list[np.ndarray]) -> None:
     videos = "".join(
         f'<figure><video src="{files[v]}" controls loop autoplay muted></video>'
         f"<figcaption>{v.replace('_', ' ')}</figcaption></figure>"
-        for v in ("template_video", "edit_video", "compare_video")
+        for v in ("template_video", "edit_video", "texture_video", "compare_video")
     )
     pictures = "".join(
         f'<figure><img src="{p}"><figcaption>{html.escape(c)}</figcaption></figure>'
         for c, p in [
-            ("editing target (left: the capture of view K, right: the ground-truth edit)",
+            ("geometric target (left: the capture of view K, right: the ground-truth edit)",
              files["target_before_after"]),
+            ("texture target (left: the capture of view K, right: its part recoloured, as "
+             "`sine target --recolor` makes it)", files["texture_target_before_after"]),
             *([("viewer: template | edited mesh", files["viewer"])] if "viewer" in files else []),
             *rel.items(),
         ]
@@ -654,15 +728,17 @@ def write_html(out: Path, s: dict, tiles: list[np.ndarray]) -> None:
 <style>body{{font-family:sans-serif;margin:1em}} img,video{{max-width:100%}}
 figure{{display:inline-block;vertical-align:top;margin:0.5em}} td{{padding:0 1em}}</style>
 </head><body>
-<h1>sine demo: {html.escape(s["object"])}, one geometric edit</h1>
+<h1>sine demo: {html.escape(s["object"])}, one geometric and one texture edit</h1>
 <p>{"<br>".join(html.escape(x) for x in lines)}</p>
 <figure><img src="{files["summary_png"]}"><figcaption>rows: views around the ring (K = the
-edited view); columns: template | edit | ground-truth edit</figcaption></figure>
+edited view); columns: template | geometric edit | its ground truth | texture edit | its
+ground truth</figcaption></figure>
 {videos}
 <p>Meshes (capture units, vertex colours): <a href="{files["template_mesh"]}">template</a>,
-<a href="{files["edited_mesh"]}">edited</a>.
+<a href="{files["edited_mesh"]}">geometric edit</a>,
+<a href="{files["textured_mesh"]}">texture edit</a>.
 Numbers: <a href="demo_summary.json">demo_summary.json</a>,
-<a href="eval_edit.json">eval_edit.json</a>.</p>
+<a href="eval_edit.json">eval_edit.json</a>, <a href="eval_texture.json">eval_texture.json</a>.</p>
 {pictures}
 <table>{rows}</table>
 </body></html>
@@ -672,7 +748,7 @@ Numbers: <a href="demo_summary.json">demo_summary.json</a>,
 
 DESCRIPTION = __doc__
 NAME = "demo"
-HELP = "run the whole pipeline on a built-in procedural object, with one geometric edit"
+HELP = "run the whole pipeline on a built-in procedural object, with a geometric and a texture edit"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -688,12 +764,12 @@ def run(args: argparse.Namespace) -> int:
     print(f"  seconds per stage: {summary['seconds']} (total {summary['seconds_total']})")
     if summary["seconds_work_total"] != summary["seconds_total"]:
         print(f"  (with the skipped stages' own time: {summary['seconds_work_total']} s)")
-    print(f"\nLook at: {out / 'summary.png'} (views x template | edit | ground truth)")
+    print(f"\nLook at: {out / 'summary.png'} (views x template | each edit | its ground truth)")
     print(f"         {out / 'summary.html'} (everything below, with the videos)")
-    print(f"         {out / 'compare.mp4'} (orbit: template | edit)")
+    print(f"         {out / 'compare.mp4'} (orbit: template | geometric edit | texture edit)")
     if "viewer" in summary["files"]:
         print(f"         {out / 'viewer.png'} (template and edited mesh, cameras)")
-    print(f"         {out / 'edited.glb'} (the edited mesh, for Blender / MeshLab)")
+    print(f"         {out / 'edited.glb'}, {out / 'texture_edited.glb'} (the edited meshes)")
     print(f"         {out / 'run' / 'recon_contact_sheet.png'} (reconstruction)")
     print(f"Numbers: {out / 'demo_summary.json'}")
     return 0

@@ -55,8 +55,16 @@ def label(image: np.ndarray, text: str) -> np.ndarray:
 
 def side_by_side(left: np.ndarray, right: np.ndarray, names=("template", "edit")) -> np.ndarray:
     """Two images [H, W, 3] next to each other with a 2-pixel white gap: [H, 2W + 2, 3]."""
-    gap = np.ones((left.shape[0], 2, 3), np.float32)
-    return np.concatenate([label(left, names[0]), gap, label(right, names[1])], axis=1)
+    return strip([left, right], names)
+
+
+def strip(images: list[np.ndarray], names: list[str]) -> np.ndarray:
+    """Images [H, W, 3] left to right, each labelled, with 2-pixel white gaps between."""
+    gap = np.ones((images[0].shape[0], 2, 3), np.float32)
+    parts = []
+    for image, name in zip(images, names, strict=True):
+        parts += [gap, label(image, name)] if parts else [label(image, name)]
+    return np.concatenate(parts, axis=1)
 
 
 def render_frames(

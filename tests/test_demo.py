@@ -53,6 +53,12 @@ FAST_FILES = [
     "eval_edit.json",
     "run/recon_contact_sheet.png",
     "run/edits/geometric/edit_field.pt",
+    "texture_target.png",
+    "texture_target_before_after.png",
+    "texture.mp4",
+    "texture_edited.glb",
+    "eval_texture.json",
+    "run/edits/texture/edit_field.pt",
 ]
 
 
@@ -72,16 +78,17 @@ def test_fast_demo_end_to_end_then_resumes(tmp_path, capsys):
         assert (out / name).is_file(), name
     assert f"Look at: {out / 'summary.png'}" in printed
 
-    # orbit videos: 24 frames of the 128 px working size; compare = template | 2 px | edit
+    # orbit videos: 24 frames of the 128 px working size; compare = template | geometric |
+    # texture edit, 2 px apart
     assert video_info(out / "edit.mp4") == pytest.approx(
         {"frames": 24, "width": 128, "height": 128, "fps": 8.0}
     )
     assert video_info(out / "compare.mp4")["frames"] == 24
-    assert video_info(out / "compare.mp4")["width"] == 2 * 128 + 2
+    assert video_info(out / "compare.mp4")["width"] == 3 * 128 + 4
 
-    # the summary sheet: 5 rows of 3 tiles, with the object drawn (not blank, not one colour)
+    # the summary sheet: 5 rows of 5 tiles, with the object drawn (not blank, not one colour)
     sheet = read_image(out / "summary.png")
-    assert sheet.shape[1] == 3 * 128 + 4 and sheet.shape[0] > 5 * 128
+    assert sheet.shape[1] == 5 * 128 + 8 and sheet.shape[0] > 5 * 128
     assert (sheet.min(axis=2) < 0.8).mean() > 0.1 and sheet.std() > 0.1
 
     # the exported edited mesh re-loads with colours (the SfM run's capture frame)
@@ -97,6 +104,9 @@ def test_fast_demo_end_to_end_then_resumes(tmp_path, capsys):
         "edit_heldout_silhouette_iou",
         "edited_view_silhouette_iou",
         "template_vs_gt_edit_heldout_silhouette_iou",
+        "texture_heldout_psnr_part",
+        "template_vs_gt_texture_heldout_psnr_part",
+        "texture_heldout_psnr_rest",
     ]
     assert all(math.isfinite(s[k]) for k in numbers), {k: s[k] for k in numbers}
     # Measured (2 busy cores): edited view 0.97, held-out 0.95 vs the unedited template's 0.89;
@@ -109,6 +119,7 @@ def test_fast_demo_end_to_end_then_resumes(tmp_path, capsys):
     stamp = (out / "edit.mp4").stat().st_mtime_ns
     assert main(["demo", "--fast", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    for stage in ("fit", "features", "masks", "edit", "render", "export", "view", "eval"):
+    stages = ("fit", "features", "masks", "edit", "texture", "render", "export", "view", "eval")
+    for stage in stages:
         assert f"{stage}: already done" in printed, stage
     assert (out / "edit.mp4").stat().st_mtime_ns == stamp
