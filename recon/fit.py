@@ -496,6 +496,12 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     field = TemplateField(field_config(cfg, len(train_views))).to(device)
     codes = torch.nn.Parameter(torch.zeros(len(train_views), cfg.appearance_dim, device=device))
     background = Background(bg_color, learnable=bg_learn).to(device)
+    if cfg.background == "capture" and not pool.has_masks:
+        raise SineError(
+            "--background capture composites rays outside the object masks over their captured "
+            f"pixels, but {run.root} has no masks: run `sine recon` (it makes them) or choose "
+            "--background learn|white|black"
+        )
     behind_capture = pool.has_masks and (
         cfg.background == "capture" or (cfg.background == "auto" and bg_learn)
     )

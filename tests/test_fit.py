@@ -290,6 +290,14 @@ def test_capture_background_composites_rays_outside_the_masks_over_their_own_pix
     assert objects["capture"] > objects["learn"] + 3.0
 
 
+def test_capture_background_without_masks_is_a_clear_error(tmp_path):
+    run = _copy(_make_run(tmp_path / "base"), tmp_path / "run")
+    shutil.rmtree(run.root / "masks")
+    cfg = FitConfig(iterations=5, background="capture", **TINY)
+    with pytest.raises(SineError, match="has no masks"):
+        fit_template(run.root, cfg, progress=False)
+
+
 def test_the_proxy_is_refined_by_default_only_when_it_was_estimated(tmp_path):
     from recon.fit import DEFAULT_REFINE_AT, resolve_preset
     from render.io import write_json
