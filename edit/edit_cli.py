@@ -31,6 +31,12 @@ the edit from view K and a DINO texture loss on views all around (deferred back-
 semantic masks from RUN/features (`sine features`) keep the rest of the object unchanged.
 --no-compositor and --method naive are baselines.
 
+Hybrid (--mode hybrid): geometric steps, then texture steps on the geometrically edited object,
+kept as one edit. One --target that changes both (its silhouette drives the shape, its colours
+the texture), or --target-geometry + --target-texture (view K of the new shape repainted; or
+--reference PHOTO). Each phase takes --iterations steps; --region limits both, unless
+--region-texture gives the repainted part.
+
 An interrupted edit resumes when re-run; changed options train it again; --force starts over.
 
 examples:
@@ -42,6 +48,7 @@ examples:
   sine target runs/car --view 9 --recolor --region part.png --hue 120 --out red.png && \\
       sine edit runs/car --target red.png --view 9 --region part.png --mode texture --name red
   sine edit runs/car --reference photo.png --view 9 --mode texture --name look
+  sine edit runs/car --target-geometry t.png --target-texture t_red.png --view 9 --mode hybrid
 """
 
 
@@ -59,7 +66,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--view", type=int, required=True, help="index K of the edited view (cameras.json order)"
     )
     parser.add_argument(
-        "--mode", choices=["geometry", "texture"], default="geometry", help="what the edit changes"
+        "--mode",
+        choices=["geometry", "texture", "hybrid"],
+        default="geometry",
+        help="what the edit changes (hybrid: the shape, then the colours)",
+    )
+    parser.add_argument(
+        "--target-geometry", type=Path, help="hybrid: the image of view K with the new shape"
+    )
+    parser.add_argument(
+        "--target-texture", type=Path, help="hybrid: view K of the new shape, repainted"
+    )
+    parser.add_argument(
+        "--region-texture",
+        type=Path,
+        help="hybrid: the repainted part, when another than --region (white on black in view K)",
     )
     parser.add_argument(
         "--reference", type=Path, help="texture: a photo of another object whose look to take"
@@ -82,10 +103,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from edit.geometry_edit import GeometryEditConfig, run_geometry_edit
 
+    hybrid_only = ("target_geometry", "target_texture", "region_texture")
+    given = [f"--{k.replace('_', '-')}" for k in hybrid_only if getattr(args, k) is not None]
+    if args.mode != "hybrid" and given:
+        raise SineError(f"{' and '.join(given)}: for --mode hybrid only (other modes: --target)")
     if args.mode == "texture":
         return run_texture(args)
+    if args.mode == "hybrid":
+        return run_hybrid(args)
     if args.reference is not None:
-        raise SineError("--reference is for --mode texture")
+        raise SineError("--reference is for --mode texture or hybrid")
     if args.target is None:
         raise SineError("--target is required (the edited image of view K)")
     cfg = from_args(GeometryEditConfig, args)
@@ -149,5 +176,41 @@ def run_texture(args: argparse.Namespace) -> int:
         f"edit {args.name} (texture, {metrics['method']}): {metrics['iterations']} steps in "
         f"{metrics['train_seconds']:.0f} s; {fit}{kept} -> {where} (look at edited_view.png "
         f"and previews/)"
+    )
+    return 0
+
+
+def run_hybrid(args: argparse.Namespace) -> int:
+    from edit.geometry_edit import GeometryEditConfig
+    from edit.hybrid_edit import run_hybrid_edit
+    from edit.texture_edit import TextureEditConfig
+
+    metrics = run_hybrid_edit(
+        args.run,
+        args.view,
+        args.name,
+        from_args(GeometryEditConfig, args),
+        from_args(TextureEditConfig, args),
+        target=args.target,
+        target_geometry=args.target_geometry,
+        target_texture=args.target_texture,
+        reference=args.reference,
+        mask=args.mask,
+        region=args.region,
+        region_texture=args.region_texture,
+        force=args.force,
+        progress=not args.quiet,
+    )
+    where = args.run / "edits" / args.name
+    if already_done(args.name, where, metrics):
+        return 0
+    fit = ""
+    if "edited_view_psnr_region" in metrics:
+        fit = f", recoloured part PSNR {metrics['edited_view_psnr_region']:.2f} dB"
+    print(
+        f"edit {args.name} (hybrid): {metrics['geometry_iterations']} geometric + "
+        f"{metrics['texture_iterations']} texture steps in {metrics['train_seconds']:.0f} s; "
+        f"view {args.view}: silhouette IoU {metrics['edited_view_silhouette_iou']:.3f}{fit} -> "
+        f"{where} (look at edited_view.png, geometry/prior_preview.png and previews/)"
     )
     return 0

@@ -5,7 +5,9 @@ F'_dG; `strength` t scales the edit (0 = template, 1 = the edit). Naive: the fin
 with the template's proxy (it has no notion of a changed surface). Texture edits
 (`TextureEditScene`): the template image I_o and F_dT's modification image I_m blended by the 2D
 compositor (`edit.compositor`; without one, I_o + I_m); `strength` t blends the images,
-(1 - t) I_o + t I.
+(1 - t) I_o + t I. Hybrid edits (`edit.hybrid_edit`): a texture edit whose template is the
+geometric edit (`deformed_template`: the template behind F_dG as a plain field, sampled around
+F'_dG(proxy)); `strength` t scales the deformation and blends the images.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import nn
 
 from edit.compositor import Compositor, composite_hwc
 from edit.editing_field import EditingField, combine, edited_query, warp_vertices
@@ -58,6 +61,39 @@ def edited_sampler(
         verts = np.concatenate([warped, extra])
         tris = np.concatenate([triangles, triangles + len(warped)])
     return BandSampler(ProxyRaycaster((verts, tris), inflate=band), *samples)
+
+
+class EditedField(nn.Module):
+    """A geometric edit as a plain radiance field (the template of a hybrid edit's texture
+    phase): points [M, 3], dirs [M, 3] in edited space -> {"sigma" [M], "rgb" [M, 3]}, the
+    template's density and colour at F_dG(x) plus F_dT's modification, clamped to [0, 1]."""
+
+    def __init__(self, template: nn.Module, editing: EditingField, strength: float = 1.0):
+        super().__init__()
+        self.template, self.editing, self.strength = template, editing, float(strength)
+
+    @property
+    def grid(self):
+        """The template's hash grid (a texture edit's F_dT takes its shape)."""
+        return self.template.grid
+
+    def forward(self, points: torch.Tensor, dirs: torch.Tensor) -> dict[str, torch.Tensor]:
+        out = edited_query(self.template, self.editing, self.strength)(points, dirs)
+        return {"sigma": out["sigma"], "rgb": (out["rgb"] + out["mod"]).clamp(0.0, 1.0)}
+
+
+def deformed_template(
+    template: TemplateScene, editing: EditingField, band: float, strength: float = 1.0
+) -> TemplateScene:
+    """The template scene with a geometric edit applied: field `EditedField`, mesh F'_dG(proxy),
+    sampled in the band of half-width `band` around it (the frozen `template` stays as is)."""
+    vertices, triangles = template.mesh()
+    warped = warp_vertices(editing.forward_deform, vertices, strength)
+    fit_cfg = template.fit_config
+    samples = (fit_cfg.band_samples, fit_cfg.coarse_samples)
+    sampler = edited_sampler(editing, None, triangles, band, samples, warped=warped)
+    field = EditedField(template.field, editing, strength)
+    return dataclasses.replace(template, field=field, sampler=sampler, _mesh=(warped, triangles))
 
 
 @dataclass
@@ -187,9 +223,19 @@ def scene_from_folder(run: RunDir, edit_dir, strength: float, device: torch.devi
             raise SineError("--strength needs an edit made with --method ours (not naive)")
         return dataclasses.replace(template, name=name)
     freeze(template.field)
-    editing = EditingField(template.field.grid.cfg).to(device)
-    editing.load_state_dict({k: v.to(device) for k, v in data["editing"].items()})
-    editing.eval()
+
+    def loaded(module: nn.Module, state: dict) -> nn.Module:
+        module = module.to(device)
+        module.load_state_dict({k: v.to(device) for k, v in state.items()})
+        return module.eval()
+
+    band = float(data["band_width"])
+    texture = data
+    if data["method"] == "hybrid":  # the texture edit of the geometric edit
+        geometry = loaded(EditingField(template.field.grid.cfg), data["geometry"]["editing"])
+        template = deformed_template(template, freeze(geometry), band, strength)
+        texture = data["texture"]
+    editing = loaded(EditingField(template.field.grid.cfg), texture["editing"])
     common = dict(
         run=run,
         device=device,
@@ -197,17 +243,15 @@ def scene_from_folder(run: RunDir, edit_dir, strength: float, device: torch.devi
         template=template,
         editing=editing,
         strength=float(strength),
-        band_width=float(data["band_width"]),
+        band_width=band,
     )
-    if data["method"] == "texture":
+    if data["method"] in ("texture", "hybrid"):
         compositor = None
-        if data.get("compositor") is not None:
-            compositor = Compositor().to(device)
-            compositor.load_state_dict({k: v.to(device) for k, v in data["compositor"].items()})
-            compositor.eval()
+        if texture.get("compositor") is not None:
+            compositor = loaded(Compositor(), texture["compositor"])
         return TextureEditScene(
             **common,
             compositor=compositor,
-            compositor_region=bool(data.get("compositor_region", False)),
+            compositor_region=bool(texture.get("compositor_region", False)),
         )
     return EditScene(**common)

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import copy
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -251,6 +252,188 @@ def _image_rays(camera, device):
     return torch.from_numpy(o).to(device), torch.from_numpy(d).to(device)
 
 
+@dataclass
+class GeometryTraining:
+    """A geometric edit's training, ready for `Trainer.start(state, groups, schedules)`; then
+    `begin(trainer.generator)` gives the step function (it reads the resumed state)."""
+
+    state: dict  # "editing" (ours) or "field" (naive), and what resuming must restore
+    groups: list[dict]  # Adam parameter groups, named
+    schedules: dict  # group name -> learning-rate factor of the step
+    begin: Callable[[torch.Generator], Callable[[int], dict[str, torch.Tensor]]]
+
+
+def geometry_training(
+    cfg: GeometryEditConfig,
+    setup: EditSetup,
+    template,
+    background,
+    fit_cfg,
+    sampler,
+    device,
+    fit_colour: bool = True,
+) -> GeometryTraining:
+    """The editing field (or the naive fine-tune) and the step of L_geo (see the module doc).
+
+    fit_colour False (hybrid edits whose one target also recolours the part): inside the
+    editable region only the silhouette and the priors drive the deformation, and F_dT stays
+    zero (frozen); the texture phase learns the colours."""
+    o_all, d_all = _image_rays(setup.camera, device)
+    # L_gt's targets: the user's edit inside the editable region, the template's own rendering
+    # outside it (identical for a target edited from a snapshot; a target from elsewhere, e.g. a
+    # photo, must not make the field warp the unedited part to fix the template's own errors)
+    inside = setup.region[..., None]
+    tgt_rgb = np.where(inside, setup.target_rgb, setup.template_rgb)
+    tgt_sil = np.where(setup.region, setup.target_alpha, setup.template_alpha > 0.5)
+    tgt = torch.from_numpy(tgt_rgb.reshape(-1, 3).astype(np.float32)).to(device)
+    sil = torch.from_numpy(tgt_sil.reshape(-1).astype(np.float32)).to(device)
+    outside = torch.from_numpy(~setup.region.reshape(-1)).to(device)
+    tmpl = torch.from_numpy(setup.template_rgb.reshape(-1, 3)).to(device)
+    if cfg.method == "naive":
+        field = copy.deepcopy(template).train()
+        state = {"field": field}
+        groups = [{"params": list(field.parameters()), "lr": cfg.lr_naive, "name": "template"}]
+        query = field
+    else:
+        freeze(template)
+        editing = EditingField(template.grid.cfg)
+        if cfg.gate:
+            moved = setup.prior.moved(cfg.moved_tol)
+            ends = (setup.proxy_vertices[moved], setup.prior.vertices[moved])
+            path = [(1 - a) * ends[0] + a * ends[1] for a in np.linspace(0, 1, 5)]
+            editing.gate.set_from_points(np.concatenate(path), cfg.band_width, cfg.gate_margin)
+        editing = editing.to(device)
+        tex = editing.texture
+        deform_params = list(editing.deform.parameters()) + list(
+            editing.forward_deform.parameters()
+        )
+        groups = [{"params": deform_params, "lr": cfg.lr_deform, "name": "deform"}]
+        if fit_colour:
+            groups += [
+                {
+                    "params": [tex.grid.table],
+                    "lr": cfg.lr_texture_grid,
+                    "eps": 1e-15,
+                    "name": "texture_grid",
+                },
+                {
+                    "params": list(tex.mlp.parameters()),
+                    "lr": cfg.lr_texture_mlp,
+                    "name": "texture_mlp",
+                },
+            ]
+        else:
+            freeze(tex)  # its output layer starts at zero: m' = 0
+        # the proxy as F'_dG warped it at the last rebuild: checkpointed, so a resumed run
+        # samples as the uninterrupted one until the next rebuild
+        warped = warp_vertices(editing.forward_deform, setup.proxy_vertices)
+        state = {"editing": editing, "prior_vertices": setup.prior.vertices, "warped": warped}
+        query = edited_query(template, editing)
+    decay = exponential_decay(cfg.lr_final_factor, cfg.iterations)
+    warm = max(cfg.warmup_steps, 1)
+    # Adam's first steps move every weight by ~lr at once: the deformation would jump far from
+    # the identity (and the cycle loss with it) before the losses can steer it
+    schedules = {"deform": lambda k: min(1.0, (k + 1) / warm) * decay(k)}
+
+    def begin(gen: torch.Generator):
+        """The step function, once `Trainer.start` has restored a resumed run's state."""
+        edit_sampler = sampler
+        if cfg.method == "ours":  # after `start`: a resumed run's prior is the checkpointed one
+            proxy_v = torch.from_numpy(setup.proxy_vertices).float().to(device)
+            prior_v = torch.from_numpy(setup.prior.vertices).float().to(device)
+            unmoved = prior_v[torch.from_numpy(~setup.prior.moved(cfg.moved_tol)).to(device)]
+            surface = torch.cat([proxy_v, prior_v])
+
+        def rebuild(rewarp: bool = True):
+            """The sampler of the edited space and the view-K rays that need the field."""
+            nonlocal edit_sampler
+            if cfg.method == "ours":
+                if rewarp:
+                    warped[...] = warp_vertices(editing.forward_deform, setup.proxy_vertices)
+                edit_sampler = edited_sampler(
+                    editing,
+                    setup.proxy_vertices,
+                    setup.triangles,
+                    cfg.band_width,
+                    (fit_cfg.band_samples, fit_cfg.coarse_samples),
+                    extra=setup.prior.vertices,
+                    warped=warped,
+                )
+            hits = edit_sampler.cast(o_all, d_all)
+            return hits, torch.nonzero(hits.hit)[:, 0]
+
+        hits, pool = rebuild(rewarp=False)  # fresh: F'_dG at init; resumed: as checkpointed
+
+        def pick(points, n):
+            return points[torch.randint(len(points), (n,), generator=gen).to(device)]
+
+        def jittered(points, n):
+            p = pick(points, n)
+            return p + cfg.jitter * torch.randn(p.shape, generator=gen).to(device)
+
+        def prior_term(template_points, prior_points):
+            if cfg.prior_match == "chamfer":
+                return losses.chamfer(editing.forward_deform(template_points), prior_points)
+            return losses.vertex_match(
+                editing.deform, editing.forward_deform, template_points, prior_points
+            )
+
+        def step(i: int) -> dict[str, torch.Tensor]:
+            nonlocal hits, pool
+            if cfg.method == "ours" and i % cfg.rebuild_every == 0 and i > 0:
+                hits, pool = rebuild()
+            idx = pick(pool, cfg.batch_rays)
+            res = render_rays(
+                query,
+                o_all[idx],
+                d_all[idx],
+                edit_sampler,
+                background,
+                hits=hits[idx],
+                perturb=True,
+                generator=gen,
+            )
+            pred = combine(res)
+            out_rays = outside[idx]
+            reg = losses.photometric(pred[out_rays], tmpl[idx][out_rays]) if out_rays.any() else 0
+            terms = {
+                "silhouette": cfg.w_silhouette * losses.silhouette_bce(res["opacity"], sil[idx])
+            }
+            if fit_colour:
+                terms = {"photometric": losses.photometric(pred, tgt[idx]), **terms}
+            if cfg.method == "naive":
+                return {**terms, "reg": cfg.w_reg * (reg + 0 * pred.sum())}
+            deform, fwd = editing.deform, editing.forward_deform
+            sub = torch.randint(len(proxy_v), (cfg.prior_points,), generator=gen).to(device)
+            uniform = torch.rand(cfg.cycle_points // 2, 3, generator=gen).to(device) * 2 - 1
+            cyc_pts = torch.cat([uniform, jittered(surface, cfg.cycle_points - len(uniform))])
+            eps = cfg.jitter * torch.randn(cfg.smooth_points, 3, generator=gen).to(device)
+            if len(unmoved):
+                # both fields leave the unedited surface (and its band) in place and F_dT adds
+                # no colour there: its hash table, trained on view K alone, would otherwise leak
+                # the edited view's colours into unseen parts through hash collisions
+                still = pick(unmoved, cfg.anchor_points)
+                still = still + 0.5 * cfg.band_width * torch.randn(still.shape, generator=gen).to(
+                    device
+                )
+                reg = reg + losses.displacement_l1(deform, still)
+                reg = reg + losses.displacement_l1(fwd, still)
+                reg = reg + editing.texture(still).abs().sum(dim=-1).mean()
+            smooth_at = jittered(prior_v, cfg.smooth_points)
+            return {
+                **terms,
+                # the paper's L_gp sums over the whole mesh: estimated from the random subset
+                "gp": cfg.w_gp * len(proxy_v) / len(sub) * prior_term(proxy_v[sub], prior_v[sub]),
+                "cyc": cfg.w_cyc * losses.cycle(deform, fwd, cyc_pts),
+                "gr": cfg.w_gr * losses.deformation_smoothness(deform, smooth_at, eps),
+                "reg": cfg.w_reg * (reg + 0 * pred.sum()),
+            }
+
+        return step
+
+    return GeometryTraining(state, groups, schedules, begin)
+
+
 def run_geometry_edit(
     run_dir,
     view: int,
@@ -309,146 +492,12 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
     write_json(work / "edit.json", settings)
 
     torch.manual_seed(cfg.seed)
-    o_all, d_all = _image_rays(setup.camera, device)
-    # L_gt's targets: the user's edit inside the editable region, the template's own rendering
-    # outside it (identical for a target edited from a snapshot; a target from elsewhere, e.g. a
-    # photo, must not make the field warp the unedited part to fix the template's own errors)
-    inside = setup.region[..., None]
-    tgt_rgb = np.where(inside, setup.target_rgb, setup.template_rgb)
-    tgt_sil = np.where(setup.region, setup.target_alpha, setup.template_alpha > 0.5)
-    tgt = torch.from_numpy(tgt_rgb.reshape(-1, 3).astype(np.float32)).to(device)
-    sil = torch.from_numpy(tgt_sil.reshape(-1).astype(np.float32)).to(device)
-    outside = torch.from_numpy(~setup.region.reshape(-1)).to(device)
-    tmpl = torch.from_numpy(setup.template_rgb.reshape(-1, 3)).to(device)
-    edit_sampler = sampler
-    if cfg.method == "naive":
-        field = copy.deepcopy(template).train()
-        state = {"field": field}
-        groups = [{"params": list(field.parameters()), "lr": cfg.lr_naive, "name": "template"}]
-        query = field
-    else:
-        freeze(template)
-        editing = EditingField(template.grid.cfg)
-        if cfg.gate:
-            moved = setup.prior.moved(cfg.moved_tol)
-            ends = (setup.proxy_vertices[moved], setup.prior.vertices[moved])
-            path = [(1 - a) * ends[0] + a * ends[1] for a in np.linspace(0, 1, 5)]
-            editing.gate.set_from_points(np.concatenate(path), cfg.band_width, cfg.gate_margin)
-        editing = editing.to(device)
-        tex = editing.texture
-        deform_params = list(editing.deform.parameters()) + list(
-            editing.forward_deform.parameters()
-        )
-        groups = [
-            {"params": deform_params, "lr": cfg.lr_deform, "name": "deform"},
-            {
-                "params": [tex.grid.table],
-                "lr": cfg.lr_texture_grid,
-                "eps": 1e-15,
-                "name": "texture_grid",
-            },
-            {"params": list(tex.mlp.parameters()), "lr": cfg.lr_texture_mlp, "name": "texture_mlp"},
-        ]
-        # the proxy as F'_dG warped it at the last rebuild: checkpointed, so a resumed run
-        # samples as the uninterrupted one until the next rebuild
-        warped = warp_vertices(editing.forward_deform, setup.proxy_vertices)
-        state = {"editing": editing, "prior_vertices": setup.prior.vertices, "warped": warped}
-        query = edited_query(template, editing)
-    decay = exponential_decay(cfg.lr_final_factor, cfg.iterations)
-    warm = max(cfg.warmup_steps, 1)
-    # Adam's first steps move every weight by ~lr at once: the deformation would jump far from
-    # the identity (and the cycle loss with it) before the losses can steer it
-    schedules = {"deform": lambda k: min(1.0, (k + 1) / warm) * decay(k)}
-    trainer.start(state, groups, schedules, lr_final_factor=cfg.lr_final_factor)
-    gen = trainer.generator
-    if cfg.method == "ours":  # after `start`: a resumed run's prior is the checkpointed one
-        proxy_v = torch.from_numpy(setup.proxy_vertices).float().to(device)
-        prior_v = torch.from_numpy(setup.prior.vertices).float().to(device)
-        unmoved = prior_v[torch.from_numpy(~setup.prior.moved(cfg.moved_tol)).to(device)]
-        surface = torch.cat([proxy_v, prior_v])
-
-    def rebuild(rewarp: bool = True):
-        """The sampler of the edited space and the view-K rays that need the field."""
-        nonlocal edit_sampler
-        if cfg.method == "ours":
-            if rewarp:
-                warped[...] = warp_vertices(editing.forward_deform, setup.proxy_vertices)
-            edit_sampler = edited_sampler(
-                editing,
-                setup.proxy_vertices,
-                setup.triangles,
-                cfg.band_width,
-                (fit_cfg.band_samples, fit_cfg.coarse_samples),
-                extra=setup.prior.vertices,
-                warped=warped,
-            )
-        hits = edit_sampler.cast(o_all, d_all)
-        return hits, torch.nonzero(hits.hit)[:, 0]
-
-    hits, pool = rebuild(rewarp=False)  # fresh: F'_dG at init; resumed: as checkpointed
-
-    def pick(points, n):
-        return points[torch.randint(len(points), (n,), generator=gen).to(device)]
-
-    def jittered(points, n):
-        p = pick(points, n)
-        return p + cfg.jitter * torch.randn(p.shape, generator=gen).to(device)
-
-    def prior_term(template_points, prior_points):
-        if cfg.prior_match == "chamfer":
-            return losses.chamfer(editing.forward_deform(template_points), prior_points)
-        return losses.vertex_match(
-            editing.deform, editing.forward_deform, template_points, prior_points
-        )
-
-    def step(i: int) -> dict[str, torch.Tensor]:
-        nonlocal hits, pool
-        if cfg.method == "ours" and i % cfg.rebuild_every == 0 and i > 0:
-            hits, pool = rebuild()
-        idx = pick(pool, cfg.batch_rays)
-        res = render_rays(
-            query,
-            o_all[idx],
-            d_all[idx],
-            edit_sampler,
-            background,
-            hits=hits[idx],
-            perturb=True,
-            generator=gen,
-        )
-        pred = combine(res)
-        out_rays = outside[idx]
-        reg = losses.photometric(pred[out_rays], tmpl[idx][out_rays]) if out_rays.any() else 0
-        terms = {
-            "photometric": losses.photometric(pred, tgt[idx]),
-            "silhouette": cfg.w_silhouette * losses.silhouette_bce(res["opacity"], sil[idx]),
-        }
-        if cfg.method == "naive":
-            return {**terms, "reg": cfg.w_reg * (reg + 0 * pred.sum())}
-        deform, fwd = editing.deform, editing.forward_deform
-        sub = torch.randint(len(proxy_v), (cfg.prior_points,), generator=gen).to(device)
-        uniform = torch.rand(cfg.cycle_points // 2, 3, generator=gen).to(device) * 2 - 1
-        cyc_pts = torch.cat([uniform, jittered(surface, cfg.cycle_points - len(uniform))])
-        eps = cfg.jitter * torch.randn(cfg.smooth_points, 3, generator=gen).to(device)
-        if len(unmoved):
-            # both fields leave the unedited surface (and its band) in place and F_dT adds no
-            # colour there: its hash table, trained on view K alone, would otherwise leak the
-            # edited view's colours into unseen parts through hash collisions
-            still = pick(unmoved, cfg.anchor_points)
-            still = still + 0.5 * cfg.band_width * torch.randn(still.shape, generator=gen).to(
-                device
-            )
-            reg = reg + losses.displacement_l1(deform, still) + losses.displacement_l1(fwd, still)
-            reg = reg + editing.texture(still).abs().sum(dim=-1).mean()
-        return {
-            **terms,
-            # the paper's L_gp sums over the whole mesh: estimated from the random subset
-            "gp": cfg.w_gp * len(proxy_v) / len(sub) * prior_term(proxy_v[sub], prior_v[sub]),
-            "cyc": cfg.w_cyc * losses.cycle(deform, fwd, cyc_pts),
-            "gr": cfg.w_gr
-            * losses.deformation_smoothness(deform, jittered(prior_v, cfg.smooth_points), eps),
-            "reg": cfg.w_reg * (reg + 0 * pred.sum()),
-        }
+    training = geometry_training(cfg, setup, template, background, fit_cfg, sampler, device)
+    trainer.start(
+        training.state, training.groups, training.schedules, lr_final_factor=cfg.lr_final_factor
+    )
+    step = training.begin(trainer.generator)
+    field, editing = training.state.get("field"), training.state.get("editing")
 
     if not trainer.run(step, stop_at=stop_at):
         return {"step": trainer.step}

@@ -226,7 +226,13 @@ def pick_view(run: RunDir, view: int):
     return frames[view]
 
 
-def prepare(run, out, view, target, region, reference, cfg, template, bg, sampler, device):
+def prepare(
+    run, out, view, target, region, reference, cfg, template, bg, sampler, device, on_object=False
+):
+    """View K through the frozen `template` and the edit's inputs (see `TextureSetup`).
+    on_object: the region keeps only pixels that are the object in both the template's
+    rendering and the target (a hybrid edit's texture steps: silhouette differences are the
+    geometric steps' part)."""
     camera = pick_view(run, view)
     size = (camera.width, camera.height)
     background = bg().detach().cpu().numpy()
@@ -241,6 +247,12 @@ def prepare(run, out, view, target, region, reference, cfg, template, bg, sample
         editable = difference_region(tgt, t_rgb, t_alpha, cfg.region_dilate)
     else:  # a reference without a region: the whole object may change
         editable = t_alpha > 0.5
+    if on_object:
+        editable = editable & (t_alpha > 0.5)
+        if tgt is not None:
+            editable &= tgt.silhouette > 0.5
+        if not editable.any():
+            raise SineError(f"the region to recolour does not touch the object in view {view}")
     style = read_reference(reference, background) if reference is not None else tgt.rgb
     samples.editable = torch.from_numpy(editable.reshape(-1)).to(device)
     if tgt is not None:
@@ -484,10 +496,27 @@ def _naive(cfg, trainer, template, background, sampler, setup: TextureSetup, dev
 
 def _ours(run, cfg, trainer, template, sampler, background, setup: TextureSetup, device):
     """F_dT + compositor with deferred back-propagation (see the module doc)."""
-    from edit.dino import load_dino
-    from edit.texture_loss import TextureLoss
+    editing, compositor, state, groups = texture_parts(template.grid.cfg, cfg, device)
+    trainer.start(state, groups, lr_final_factor=cfg.lr_final_factor)
+    step, mask_source = texture_steps(
+        run,
+        cfg,
+        trainer.generator,
+        editing,
+        compositor,
+        template,
+        sampler,
+        background,
+        setup,
+        device,
+    )
+    return editing, compositor, step, mask_source
 
-    editing = EditingField(template.grid.cfg).to(device)
+
+def texture_parts(grid_cfg, cfg: TextureEditConfig, device):
+    """(editing field, compositor or None, state, parameter groups) of a texture edit, before
+    `Trainer.start`: F_dT learns, F_dG and F'_dG are exactly the identity (frozen)."""
+    editing = EditingField(grid_cfg).to(device)
     for deform in (editing.deform, editing.forward_deform):  # exactly the identity, frozen
         nn.init.zeros_(deform.mlp[-1].weight)
         nn.init.zeros_(deform.mlp[-1].bias)
@@ -504,9 +533,19 @@ def _ours(run, cfg, trainer, template, sampler, background, setup: TextureSetup,
             {"params": list(compositor.parameters()), "lr": cfg.lr_compositor, "name": "compositor"}
         )
         state["compositor"] = compositor
-    trainer.start(state, groups, lr_final_factor=cfg.lr_final_factor)
-    gen = trainer.generator
+    return editing, compositor, state, groups
 
+
+def texture_steps(
+    run, cfg, gen, editing, compositor, template, sampler, background, setup: TextureSetup, device
+):
+    """(step, mask source) of F_dT + compositor, once `Trainer.start` has restored a resumed
+    run's state: `template` (frozen field) and `sampler` render the views I_o comes from, `gen`
+    is the trainer's generator; step(i) is step i of this training (0..cfg.iterations-1)."""
+    from edit.dino import load_dino
+    from edit.texture_loss import TextureLoss
+
+    texture = editing.texture
     use_tex = cfg.tex_views > 0 and (cfg.w_cls > 0 or cfg.w_structure > 0)
     tex_loss = None
     if use_tex:
@@ -630,7 +669,7 @@ def _ours(run, cfg, trainer, template, sampler, background, setup: TextureSetup,
                 terms["reg_field"] = reg_field
         return {k: v.detach() for k, v in terms.items()}
 
-    return editing, compositor, step, mask_source
+    return step, mask_source
 
 
 def edited_image(
