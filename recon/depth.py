@@ -15,15 +15,21 @@ which measured better than the hull alone: bench/RESULTS.md, Reconstruction):
   surface (beyond `front_tol`, the hull is an outer bound) and at most `max_behind` behind it
   (a concavity, not a mismatch). The hull is kept everywhere else. The report says which
   fraction of the masked pixels took stereo (`stereo_pixel_fraction`).
+Partial captures (views that show the object cut by the image border): where the visual hull
+is open (recon.visual_hull: no view bounds the object there) it gives no depth; stereo alone
+fills what it can there (`stereo_open_pixel_fraction` of those pixels). The depth stage stops
+with one message when too little of the masked pixels gets depth.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from tqdm import tqdm
 
 from recon.stereo import StereoParams, stereo_depth
-from recon.visual_hull import carve, hull_bounds, hull_mesh
+from recon.visual_hull import carve_grid, hull_bounds, hull_mesh, open_faces, touches_border
 from render.cameras import Camera
 from render.raycast import MeshRaycaster
 
@@ -33,15 +39,57 @@ def raycast_depth(vertices: np.ndarray, faces: np.ndarray, cam: Camera) -> np.nd
     return MeshRaycaster((vertices, faces)).depth(cam)
 
 
+@dataclass
+class HullMesh:
+    """The visual hull as a closed mesh and where it is open (recon.visual_hull module doc)."""
+
+    vertices: np.ndarray  # [V, 3]
+    faces: np.ndarray  # [F, 3]
+    voxel: float
+    open_faces: np.ndarray  # [F] bool: no view bounds the object there
+    complete_views: int = 0  # views whose mask stays clear of the image border
+
+    @property
+    def open_fraction(self) -> float:
+        """Fraction of the hull's surface area that is open."""
+        tri = self.vertices[self.faces]  # [F, 3, 3]
+        area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        return float(area[self.open_faces].sum() / max(area.sum(), 1e-12))
+
+    def stats(self) -> dict:
+        return {
+            "hull_voxel_size": self.voxel,
+            "hull_triangles": len(self.faces),
+            "hull_open_fraction": round(self.open_fraction, 4),
+            "hull_complete_views": self.complete_views,
+        }
+
+
+def visual_hull(
+    cameras: list[Camera], masks: list[np.ndarray], resolution: int = 160, tolerance: int = 1
+) -> HullMesh:
+    """The visual hull carved at `resolution` voxels across its box (`hull_bounds`), meshed."""
+    lo, hi = hull_bounds(cameras, masks)
+    # `tolerance` views may disagree: one bad mask must not cut a thin part off everywhere.
+    occ, carved, origin, voxel = carve_grid(
+        cameras, masks, lo, hi, resolution, dilate_px=1, tolerance=tolerance
+    )
+    verts, faces = hull_mesh(occ, origin, voxel)
+    return HullMesh(
+        verts,
+        faces,
+        voxel,
+        open_faces(verts, faces, occ, carved, origin, voxel),
+        complete_views=sum(not touches_border(m) for m in masks),
+    )
+
+
 def visual_hull_mesh(
     cameras: list[Camera], masks: list[np.ndarray], resolution: int = 160, tolerance: int = 1
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """The visual hull as a closed mesh: vertices [V, 3], faces [F, 3], voxel size."""
-    lo, hi = hull_bounds(cameras, masks)
-    # `tolerance` views may disagree: one bad mask must not cut a thin part off everywhere.
-    occ, origin, voxel = carve(cameras, masks, lo, hi, resolution, dilate_px=1, tolerance=tolerance)
-    verts, faces = hull_mesh(occ, origin, voxel)
-    return verts, faces, voxel
+    hull = visual_hull(cameras, masks, resolution, tolerance)
+    return hull.vertices, hull.faces, hull.voxel
 
 
 def raycast_views(vertices: np.ndarray, faces: np.ndarray, cameras: list[Camera]):
@@ -50,22 +98,39 @@ def raycast_views(vertices: np.ndarray, faces: np.ndarray, cameras: list[Camera]
     return [caster.depth(cam) for cam in cameras]
 
 
+def bounded_depths(hull: HullMesh, cameras: list[Camera]) -> list[np.ndarray]:
+    """Camera-z depth [H, W] of the hull in every camera, 0 where the first hit is open."""
+    caster = MeshRaycaster((hull.vertices, hull.faces))
+    out = []
+    for cam in cameras:
+        origins, dirs = cam.rays()
+        hits = caster.cast(origins, dirs)
+        z = hits.t * (dirs @ cam.camera_to_world[:3, 2].astype(np.float32))  # [H*W]
+        tri = np.asarray(hits.triangle)
+        z[~np.isfinite(z) | ((tri >= 0) & hull.open_faces[np.maximum(tri, 0)])] = 0.0
+        out.append(z.reshape(cam.height, cam.width).astype(np.float32))
+    return out
+
+
 def visual_hull_depth(
     cameras: list[Camera],
     masks: list[np.ndarray],
     resolution: int = 160,
     tolerance: int = 1,
-    hull: tuple[np.ndarray, np.ndarray, float] | None = None,
+    hull: HullMesh | None = None,
 ) -> tuple[list[np.ndarray], dict]:
-    """Depth maps of the visual hull for every view (masked), and stats."""
-    verts, faces, voxel = hull or visual_hull_mesh(cameras, masks, resolution, tolerance)
-    depths = raycast_views(verts, faces, cameras)
+    """Depth maps of the visual hull for every view (masked; 0 where the hull is open), and
+    stats (`hull_open_pixel_fraction`: of the masked pixels, those the hull gives no depth)."""
+    hull = hull or visual_hull(cameras, masks, resolution, tolerance)
+    depths = bounded_depths(hull, cameras)
     for z, mask in tqdm(list(zip(depths, masks, strict=True)), desc="hull depth", unit="view"):
         z[~mask] = 0.0
+    masked = sum(int(m.sum()) for m in masks)
+    missing = sum(int((m & (z <= 0)).sum()) for z, m in zip(depths, masks, strict=True))
     return depths, {
         "hull_resolution": resolution,
-        "hull_voxel_size": voxel,
-        "hull_triangles": len(faces),
+        **hull.stats(),
+        "hull_open_pixel_fraction": missing / max(masked, 1),
     }
 
 
@@ -89,21 +154,32 @@ def hull_stereo_depth(
     max_behind: float,
     params: StereoParams | None = None,
 ) -> tuple[list[np.ndarray], dict]:
-    """Visual-hull depth with stereo where it is consistent (see the module docstring)."""
-    out, used, total = [], 0, 0
+    """Visual-hull depth with stereo where it is consistent (see the module docstring); inside
+    the mask where the hull gives no depth (it is open there), stereo alone."""
+    out, used, total, unknown_total, unknown_used = [], 0, 0, 0, 0
     for i, hull in enumerate(tqdm(hull_depths, desc="stereo depth", unit="view")):
         z = hull[hull > 0]
+        unknown = masks[i] & (hull <= 0)
         if len(z) == 0:
             out.append(hull)
+            unknown_total += int(unknown.sum())
             continue
-        z_range = (float(z.min()), float(z.max()) + max_behind)
-        stereo = stereo_depth(cameras, images, masks, i, z_range, params, agree=front_tol)
+        z_min, z_max = float(z.min()), float(z.max()) + max_behind
+        if unknown.any():  # the object may go on beyond the hull: search further
+            span = z_max - z_min
+            z_min, z_max = max(z_min - span, 0.2 * z_min), z_max + span
+        stereo = stereo_depth(cameras, images, masks, i, (z_min, z_max), params, agree=front_tol)
         fused, use = fuse_hull_stereo(hull, stereo, front_tol, max_behind)
+        fill = unknown & (stereo > 0)
+        fused[fill] = stereo[fill]
         out.append(fused)
         used += int(use.sum())
         total += int((hull > 0).sum())
+        unknown_total += int(unknown.sum())
+        unknown_used += int(fill.sum())
     return out, {
         "stereo_pixel_fraction": used / max(total, 1),
+        "stereo_open_pixel_fraction": unknown_used / max(unknown_total, 1),
         "stereo_front_tolerance": front_tol,
         "stereo_max_behind": max_behind,
     }

@@ -164,12 +164,20 @@ class ReconConfig:
     hull_tolerance: int = option(
         1, "depth: views allowed to disagree when carving the visual hull", low=0
     )
+    min_depth_fraction: float = option(
+        0.5,
+        "depth: stop when fewer of the masked pixels than this get depth (a partial capture "
+        "whose visual hull is open and where stereo finds little)",
+        low=0.0,
+        high=1.0,
+    )
     tsdf_voxel_size: float = option(1 / 256, "proxy: TSDF voxel size in run units", low=1e-5)
     tsdf_trunc_voxels: float = option(3.0, "proxy: TSDF truncation in voxels", low=0.5)
     proxy_close_with_hull: bool = option(
         True,
         "proxy: close what no view sees by fusing the visual hull, ray cast from virtual views "
-        "all around, at low weight (watertight proxy where the hull is)",
+        "all around, at low weight (watertight proxy where the hull is; where the hull is "
+        "open, no view bounds the object and nothing is closed)",
     )
     min_component: float = option(
         0.02,
@@ -219,6 +227,25 @@ def sfm_too_few(registered: int, total: int, cfg: ReconConfig) -> str:
         "directory, or give --masks DIR), --turntable on for a turntable capture, capture with "
         "more overlap between neighbouring views (<= 10-15 degrees of turn) and more texture, "
         "or give known poses (transforms.json, COLMAP, ...)"
+    )
+
+
+def partial_capture_message(stats: dict, views: int, source: str, cfg: ReconConfig) -> str:
+    """The depth stage's stop when too few masked pixels get depth (an open visual hull)."""
+    cut = views - stats.get("hull_complete_views", 0)
+    stereo = (
+        f"stereo filled {stats.get('stereo_open_pixel_fraction', 0.0):.0%} of those pixels"
+        if source == "visual_hull+stereo"
+        else "stereo was not used (--depth-method visual_hull)"
+    )
+    return (
+        f"only {stats['depth_pixel_fraction']:.0%} of the masked pixels got depth (< "
+        f"{cfg.min_depth_fraction:.0%}, --min-depth-fraction): the views do not bound the object. "
+        f"{cut} of {views} views show it cut by the image border, so the visual hull is open on "
+        f"{stats.get('hull_open_fraction', 0.0):.0%} of its surface (nothing carves what lies "
+        f"outside those frames) and {stereo}. Try: add views that show the whole object (at "
+        "least two, from different sides), give the capture's depth maps, or lower "
+        "--min-depth-fraction to accept a partial proxy"
     )
 
 
@@ -339,6 +366,15 @@ class Pipeline:
         masks = self.masks_for(cams)
         turntable = self.cfg.turntable == "on"
         verdict = check_poses(cams, masks, self.thresholds(), reprojection_px, turntable=turntable)
+        if reprojection_px is None and verdict.numbers["hull_iou_mean"] == 0.0:
+            from recon.visual_hull import UnboundedHull, hull_bounds
+
+            try:  # the capture's own poses and an empty hull: a partial capture says so
+                hull_bounds(cams, masks)
+            except UnboundedHull:
+                raise
+            except SineError:
+                pass  # the masks and cameras disagree: the self-check's verdict says it
         print(
             f"[recon] poses: self-check {verdict.verdict} (hull silhouette IoU mean "
             f"{verdict.numbers['hull_iou_mean']:.3f})"
@@ -632,21 +668,30 @@ class Pipeline:
             "normalization_center": [float(x) for x in new.center],
         }
 
-    def _hull(self, cams, masks, fresh: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
-        """The visual-hull mesh, cached in visual_hull.npz (the depth stage refreshes it)."""
-        from recon.depth import visual_hull_mesh
+    def _hull(self, cams, masks, fresh: bool = False):
+        """The visual hull (recon.depth.HullMesh), cached in visual_hull.npz (the depth stage
+        refreshes it)."""
+        from recon.depth import HullMesh, visual_hull
 
         path = self.run.root / "visual_hull.npz"
         if path.is_file() and not fresh:
             data = np.load(path)
-            return data["vertices"], data["faces"], float(data["voxel"])
-        verts, faces, voxel = visual_hull_mesh(
-            cams, masks, self.cfg.hull_resolution, self.cfg.hull_tolerance
-        )
+            faces = data["faces"]
+            open_faces = data["open_faces"] if "open_faces" in data else np.zeros(len(faces), bool)
+            complete = int(data["complete_views"]) if "complete_views" in data else 0
+            return HullMesh(data["vertices"], faces, float(data["voxel"]), open_faces, complete)
+        hull = visual_hull(cams, masks, self.cfg.hull_resolution, self.cfg.hull_tolerance)
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
-                np.savez(fh, vertices=verts, faces=faces, voxel=voxel)
-        return verts, faces, voxel
+                np.savez(
+                    fh,
+                    vertices=hull.vertices,
+                    faces=hull.faces,
+                    voxel=hull.voxel,
+                    open_faces=hull.open_faces,
+                    complete_views=hull.complete_views,
+                )
+        return hull
 
     def stage_depth(self) -> dict:
         from recon.depth import visual_hull_depth
@@ -690,6 +735,11 @@ class Pipeline:
             )
             stats.update(more)
             source = "visual_hull+stereo"
+        masked = sum(int(m.sum()) for m in masks)
+        covered = sum(int((m & (d > 0)).sum()) for m, d in zip(masks, depths, strict=True))
+        stats["depth_pixel_fraction"] = covered / max(masked, 1)
+        if stats["depth_pixel_fraction"] < self.cfg.min_depth_fraction:
+            raise SineError(partial_capture_message(stats, len(cams), source, self.cfg))
         for cam, depth in zip(cams, depths, strict=True):
             write_depth(self.run.depth_path(cam.name), depth)
         return {"depth_source": source, **stats}
@@ -702,8 +752,8 @@ class Pipeline:
         masks = self.masks_for(cams)
         closing = None
         if self.cfg.proxy_close_with_hull:
-            verts, faces, _ = self._hull(cams, masks)
-            closing = closing_depths(verts, faces)
+            hull = self._hull(cams, masks)
+            closing = closing_depths(hull.vertices, hull.faces, hull.open_faces)
         mesh = build_proxy(cams, depths, masks, proxy_params(self.cfg), closing=closing)
         write_mesh(self.run.proxy_mesh, mesh)
         return {**mesh_stats(mesh), "proxy_closed_with_hull": closing is not None}

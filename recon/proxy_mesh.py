@@ -6,7 +6,7 @@ the fused surface open. With `closing_views` the visual hull (a closed outer bou
 from virtual cameras all around the object (below and above included) and fused at low weight
 (the real views are integrated `real_weight` times, each virtual view once), so the real depth
 decides wherever it exists and the hull closes the rest: the mesh is watertight when the hull
-is. (Open3D 0.20's `fill_holes` was found to corrupt vertices; it stays as a last, checked
+is (the open faces of a partial capture's hull, recon.visual_hull, close nothing). (Open3D 0.20's `fill_holes` was found to corrupt vertices; it stays as a last, checked
 step for small holes.) Cleaning: duplicated/degenerate triangles and vertices removed, non-manifold
 edges removed, floaters culled (vertices that project outside the silhouettes of several views),
 the largest connected component kept, quadric decimation to `target_triangles`, holes up to
@@ -61,13 +61,19 @@ def build_proxy(
     return clean_mesh(mesh, params.target_triangles, min_component=params.min_component)
 
 
-def closing_depths(vertices: np.ndarray, faces: np.ndarray) -> list[tuple[Camera, np.ndarray]]:
+def closing_depths(
+    vertices: np.ndarray, faces: np.ndarray, open_faces: np.ndarray | None = None
+) -> list[tuple[Camera, np.ndarray]]:
     """A closed mesh (the visual hull, an earlier proxy) seen from `closing_views`: the
-    (camera, depth) pairs `fuse_tsdf` closes unseen parts with."""
-    from recon.depth import raycast_views
+    (camera, depth) pairs `fuse_tsdf` closes unseen parts with. `open_faces` [F] bool: faces
+    that bound nothing (an open visual hull) give no depth."""
+    from recon.depth import HullMesh, bounded_depths, raycast_views
 
     virtual = closing_views()
-    return list(zip(virtual, raycast_views(vertices, faces, virtual), strict=True))
+    if open_faces is None:
+        return list(zip(virtual, raycast_views(vertices, faces, virtual), strict=True))
+    hull = HullMesh(vertices, faces, 0.0, open_faces)
+    return list(zip(virtual, bounded_depths(hull, virtual), strict=True))
 
 
 def closing_views(n: int = 26, distance: float = 3.0, size: int = 256) -> list[Camera]:

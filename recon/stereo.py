@@ -116,6 +116,8 @@ def pair_depth(
     num = int(np.ceil((d_max - min_disp + 1) / 16.0) * 16)
     if num <= 0 or num > 16 * 16:  # a degenerate pair (or a huge range): no stereo
         return np.zeros((h, w), np.float32)
+    if min_disp + num > w - params.block_size:  # OpenCV's SGBM crashes (segfault) on these
+        return np.zeros((h, w), np.float32)
     maps_a = cv2.initUndistortRectifyMap(Ka, zero, R1, P1, size, cv2.CV_32FC1)
     maps_b = cv2.initUndistortRectifyMap(Kb, zero, R2, P2, size, cv2.CV_32FC1)
     left = cv2.remap(_gray(image_a), *maps_a, cv2.INTER_LINEAR)
