@@ -507,7 +507,7 @@ class DepthScaleFit:
             return f"{self.points} sparse points with depth (< 10)"
         return (
             f"scale {self.factor:.4g} from {self.points} points: median deviation "
-            f"{self.residual:.1%}, {self.within:.0%} of the points within {self.tolerance:.0%}, "
+            f"{self.residual:.1%}, {self.within:.0%} of the points within {self.tolerance:.1%}, "
             f"worst view {self.worst_view} off by {self.worst_view_offset:.1%}"
         )
 
