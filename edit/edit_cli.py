@@ -35,7 +35,8 @@ Hybrid (--mode hybrid): geometric steps, then texture steps on the geometrically
 kept as one edit. One --target that changes both (its silhouette drives the shape, its colours
 the texture), or --target-geometry + --target-texture (view K of the new shape repainted; or
 --reference PHOTO). Each phase takes --iterations steps; --region limits both, unless
---region-texture gives the repainted part.
+--region-texture gives the repainted part. The semantic masks of RUN/features follow the new
+shape: they carry the colours to the part's sides view K does not show.
 
 An interrupted edit resumes when re-run; changed options train it again; --force starts over.
 

@@ -77,6 +77,15 @@ class EditedField(nn.Module):
         """The template's hash grid (a texture edit's F_dT takes its shape)."""
         return self.template.grid
 
+    def canonical(self, points: torch.Tensor) -> torch.Tensor:
+        """Points [M, 3] in edited space -> F_dG(x) [M, 3], where the template is queried."""
+        return self.editing.deform(points, self.strength)
+
+    def geometry(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Points [M, 3] in edited space -> (sigma [M], geo_feat [M, F]) of the template at
+        F_dG(x) (what the feature field's rendering takes from a template)."""
+        return self.template.geometry(self.canonical(points))
+
     def forward(self, points: torch.Tensor, dirs: torch.Tensor) -> dict[str, torch.Tensor]:
         out = edited_query(self.template, self.editing, self.strength)(points, dirs)
         return {"sigma": out["sigma"], "rgb": (out["rgb"] + out["mod"]).clamp(0.0, 1.0)}

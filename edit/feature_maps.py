@@ -4,6 +4,12 @@
 (`edit.feature_field_fit.load_features`) and renders any camera's feature map at a fraction of
 its size (DINO features are smooth: half size is ~4x faster for the same masks), upsampled
 bilinearly to the camera's size, with the template's opacity as the object mask.
+
+With `geometry` (a `TemplateScene`, e.g. `edit.editing_scene.deformed_template`: a geometric
+edit), the feature maps are those of that object: rendered with its density and sampler, and
+where its field is an `EditedField` the feature field (and the template's geometry feature it
+may take) is queried at the template point F_dG(x') of each sample x', so the features move
+with the edited shape (a hybrid edit's semantic masks).
 """
 
 from __future__ import annotations
@@ -12,6 +18,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from edit.editing_scene import EditedField
 from edit.feature_field_fit import load_features
 from render.device import pick_device
 from render.feature_field import render_feature_map
@@ -22,7 +29,8 @@ class FeatureMapRenderer:
 
     space: "centred" = the field's PCA coefficients (DINO features minus the object's mean
     feature), "dino" = decoded DINO features; render_scale in (0, 1]: fraction of the camera's
-    size rendered; min_opacity: template opacity from which a pixel is on the object."""
+    size rendered; min_opacity: template opacity from which a pixel is on the object;
+    geometry: the scene whose shape the maps show (default: the run's template)."""
 
     def __init__(
         self,
@@ -32,11 +40,17 @@ class FeatureMapRenderer:
         render_scale: float = 0.5,
         min_opacity: float = 0.5,
         chunk: int = 4096,
+        geometry=None,
     ):
         self.device = pick_device(device)
         self.space, self.render_scale = space, render_scale
         self.min_opacity, self.chunk = min_opacity, chunk
         self.template, self.field, self.sampler = load_features(run_dir, self.device)
+        self.warp = None
+        if geometry is not None:
+            self.template, self.sampler = geometry.field, geometry.sampler
+            if isinstance(geometry.field, EditedField):
+                self.warp = geometry.field.canonical
 
     def __call__(self, camera) -> tuple[torch.Tensor, np.ndarray]:
         scale = min(max(self.render_scale, 0.0), 1.0)
@@ -50,6 +64,7 @@ class FeatureMapRenderer:
             chunk=self.chunk,
             device=self.device,
             decode=self.space == "dino",
+            warp=self.warp,
         )
         feats = torch.from_numpy(out["features"]).permute(2, 0, 1)  # [C, h, w]
         opacity = torch.from_numpy(out["opacity"])[None]  # [1, h, w]

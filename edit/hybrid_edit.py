@@ -24,9 +24,12 @@ then `texture.iterations` texture steps:
 
 The two kinds of step alternate once, geometry first: texture steps keep every view's samples of
 a frozen geometry (what deferred back-propagation and the kept template views rely on), and the
-geometry losses do not depend on F_dT. The texture steps' masks of other views are the region
-lifted onto the edited surface (`--mask-source lifted`): the feature field (`sine features`)
-follows the template's shape, not the edited one.
+geometry losses do not depend on F_dT. The texture steps' masks of other views (`--mask-source`,
+as `--mode texture`): the semantic masks of the run's feature field (`sine features`) rendered on
+the edited shape (`edit.feature_maps.FeatureMapRenderer` with the geometric edit: the feature
+field is queried at F_dG(x') of each sample x' and composited with the edited density), which
+carry the new colours to the sides of the part view K does not show; or the region lifted onto
+the edited surface (the sides view K never saw keep their colour).
 
 Outputs in RUN/edits/NAME/ (load_scene / `sine render` / `sine export` render both applied):
 
@@ -43,7 +46,6 @@ Outputs in RUN/edits/NAME/ (load_scene / `sine render` / `sine export` render bo
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from pathlib import Path
 
@@ -115,17 +117,12 @@ def run_hybrid_edit(
             "--method naive is a baseline of --mode geometry and --mode texture; a hybrid edit "
             "learns the editing field (--method ours)"
         )
-    if tcfg.mask_source == "features":
-        raise SineError(
-            "--mask-source features does not apply to --mode hybrid (the feature field follows "
-            "the template's shape, not the edited one); the region is lifted onto the new surface"
-        )
-    tcfg = dataclasses.replace(tcfg, mask_source="lifted")
     if reference is not None and not Path(reference).is_file():
         raise SineError(f"reference image {reference} does not exist")
     run = RunDir(run_dir)
     run.require("cameras")
     pick_view(run, view)
+    texture_edit.require_features(run, tcfg)  # before the geometric steps, not after
     out = run.edit(name)
     if out.exists() and not out.is_dir():
         raise SineError(f"{out} exists and is not a folder")
@@ -271,6 +268,7 @@ def _edit(
                 background,
                 setup,
                 device,
+                feature_geometry=edited,
             )
             phase.update(setup=setup, step=step, mask_source=mask_source)
         return phase

@@ -294,18 +294,26 @@ class ViewBank:
         return self.cache[j]
 
 
-def editable_masker(run: RunDir, setup: TextureSetup, cfg, device):
-    """view -> [P] bool pixels that may change (see the module doc); and the source's name."""
+def require_features(run: RunDir, cfg) -> bool:
+    """Whether the run has a feature field; a SineError when `cfg.mask_source` needs one."""
     has_features = (run.features / "field.pt").is_file()
     if cfg.mask_source == "features" and not has_features:
         raise SineError(
             f"--mask-source features needs {run.features}/field.pt: run `sine features`"
         )
+    return has_features
+
+
+def editable_masker(run: RunDir, setup: TextureSetup, cfg, device, geometry=None):
+    """view -> [P] bool pixels that may change (see the module doc); and the source's name.
+    geometry: the scene whose feature maps the semantic masks take (default: the template; a
+    hybrid edit's `deformed_template`, see `edit.feature_maps.FeatureMapRenderer`)."""
+    has_features = require_features(run, cfg)
     if cfg.mask_source == "features" or (cfg.mask_source == "auto" and has_features):
         from edit.feature_maps import FeatureMapRenderer
         from edit.semantic_masks import SemanticMasks
 
-        renderer = FeatureMapRenderer(run.root, str(device))
+        renderer = FeatureMapRenderer(run.root, str(device), geometry=geometry)
         feats, on_object = renderer(setup.camera)
         painted = setup.region & on_object
         if not painted.any():
@@ -537,11 +545,23 @@ def texture_parts(grid_cfg, cfg: TextureEditConfig, device):
 
 
 def texture_steps(
-    run, cfg, gen, editing, compositor, template, sampler, background, setup: TextureSetup, device
+    run,
+    cfg,
+    gen,
+    editing,
+    compositor,
+    template,
+    sampler,
+    background,
+    setup: TextureSetup,
+    device,
+    feature_geometry=None,
 ):
     """(step, mask source) of F_dT + compositor, once `Trainer.start` has restored a resumed
     run's state: `template` (frozen field) and `sampler` render the views I_o comes from, `gen`
-    is the trainer's generator; step(i) is step i of this training (0..cfg.iterations-1)."""
+    is the trainer's generator; step(i) is step i of this training (0..cfg.iterations-1).
+    feature_geometry: the scene of `template` and `sampler` when it is not the run's template
+    (a hybrid edit's `deformed_template`): the semantic masks' feature maps are rendered on it."""
     from edit.dino import load_dino
     from edit.texture_loss import TextureLoss
 
@@ -553,7 +573,7 @@ def texture_steps(
         dino.requires_grad_(False)
         style = torch.from_numpy(setup.style_image).permute(2, 0, 1).to(device)
         tex_loss = TextureLoss(dino, style, cfg.w_cls, cfg.w_structure)
-    masker, mask_source = editable_masker(run, setup, cfg, device)
+    masker, mask_source = editable_masker(run, setup, cfg, device, feature_geometry)
 
     def make_view(camera) -> ViewSamples:
         view = sample_view(camera, template, sampler, background, cfg.min_weight, device=device)

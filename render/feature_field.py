@@ -174,10 +174,13 @@ def render_feature_map(
     device: torch.device | None = None,
     decode: bool = True,
     min_opacity: float = 1e-3,
+    warp=None,
 ) -> dict[str, np.ndarray]:
     """One camera -> {"features" [H, W, C] (decoded, or [H, W, D] coefficients without decode),
     "opacity" [H, W]}: features composited from the top-k samples per ray (default: as in
-    training) and divided by their weight (0 where the opacity is below `min_opacity`)."""
+    training) and divided by their weight (0 where the opacity is below `min_opacity`).
+    `warp`: samples [N, 3] -> the feature field's input points [N, 3] (e.g. a geometric edit's
+    map to the template, whose `geometry` the `template` argument then wraps); default: as is."""
     device = device or features.mean.device
     top_k = top_k or features.cfg.top_k
     o, d = (torch.from_numpy(a).to(device) for a in camera.rays())  # [R, 3]
@@ -187,7 +190,10 @@ def render_feature_map(
         for a in range(0, len(s.ray), chunk):
             b = slice(a, a + chunk)
             geo = s.geo[b] if s.geo is not None else None
-            coeffs[s.ray[b]] = composite_features(features, s.points[b], s.weights[b], geo)
+            points = s.points[b]  # [c, k, 3]
+            if warp is not None:
+                points = warp(points.reshape(-1, 3)).view(points.shape)
+            coeffs[s.ray[b]] = composite_features(features, points, s.weights[b], geo)
         acc = torch.zeros(len(o), device=device).index_put((s.ray,), s.opacity)  # [R]
         fg = acc >= min_opacity
         out = features.decode(coeffs) if decode else coeffs

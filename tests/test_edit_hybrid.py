@@ -1,7 +1,9 @@
 """Hybrid editing (`sine edit --mode hybrid`): a tiny edit from one target that changes both the
 shape and the colours (both phases' losses fall, the result differs from the template in
 silhouette and in colour, towards the target), exact resume across the phase change, the
-edit's scene (strength, coloured mesh), and the CLI with two targets and its option errors."""
+edit's scene (strength, coloured mesh), and the CLI with two targets and its option errors.
+Feature maps of a geometric edit (the feature field queried at F_dG(x')) against the template's,
+and the semantic masks they give the texture steps: the far side of the part is recoloured."""
 
 from __future__ import annotations
 
@@ -11,15 +13,22 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from feature_run_helpers import TINY_FEATURES
 
 import sine_cli
+from edit.editing_field import EditingField
+from edit.editing_scene import deformed_template
+from edit.feature_field_fit import FeaturesConfig, distill_features
+from edit.feature_maps import FeatureMapRenderer
 from edit.geometry_edit import GeometryEditConfig
 from edit.hybrid_edit import run_hybrid_edit
 from edit.scene import load_scene
 from edit.targets import recolor_region, stretch_axis, write_rgba
+from edit.template_scene import load_template_scene
 from edit.texture_edit import TextureEditConfig
 from recon.rundir import RunDir
 from render.io import load_torch, read_image, read_label_map, read_mask, write_mask
+from render.template_field import freeze
 
 VIEW = 2  # tiny run: the car's side
 BODY = 1  # label of the car's body
@@ -64,14 +73,9 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
     return float((a & b).sum() / (a | b).sum())
 
 
-@pytest.fixture(scope="module")
-def hybrid_run(tiny_fitted_run, tmp_path_factory):
-    """A copy of the tiny run with targets of view VIEW: tall.png (the car 1.3x taller),
-    tall_green.png (the same with the body's hue turned by 120 degrees) and green.png (the
-    recoloured pixels), and an uninterrupted hybrid edit "full" learnt from tall_green.png (and
-    green.png as the repainted part)."""
-    run = tmp_path_factory.mktemp("hybrid_edit") / "run"
-    shutil.copytree(tiny_fitted_run, run)
+def _write_targets(run) -> None:
+    """Targets of view VIEW in `run`: tall.png (the car 1.3x taller), tall_green.png (the same
+    with the body's hue turned by 120 degrees) and green.png (the recoloured pixels)."""
     scene = load_scene(run, device="cpu")
     camera = RunDir(run).load_cameras().frames[VIEW]
     view = scene.render_view(camera)
@@ -82,6 +86,22 @@ def hybrid_run(tiny_fitted_run, tmp_path_factory):
     green, _ = stretch_axis(recolor_region(view["rgb"], body, 120.0), view["opacity"], "y", 1.3)
     write_rgba(run / "tall_green.png", green, alpha, background=background)
     write_mask(run / "green.png", np.abs(green - tall).max(axis=-1) > 0.05)
+
+
+def _greener(image, template, pixels) -> float:
+    """How much greener than the template `image` is on `pixels`, on average (G - R)."""
+    return float(np.mean((image - template)[pixels] @ np.array([-1.0, 1.0, 0.0])))
+
+
+@pytest.fixture(scope="module")
+def hybrid_run(tiny_fitted_run, tmp_path_factory):
+    """A copy of the tiny run (without a feature field) with the targets of `_write_targets`, and
+    an uninterrupted hybrid edit "full" learnt from tall_green.png (and green.png as the
+    repainted part): its texture steps lift the region."""
+    run = tmp_path_factory.mktemp("hybrid_edit") / "run"
+    shutil.copytree(tiny_fitted_run, run)
+    shutil.rmtree(run / "features", ignore_errors=True)  # distilled by another test module
+    _write_targets(run)
     metrics = run_hybrid_edit(
         run,
         VIEW,
@@ -144,8 +164,8 @@ def test_hybrid_edit_lowers_both_losses_and_changes_shape_and_colour(hybrid_run)
     target = read_image(run / "tall_green.png")
     shape_only = read_image(out / "texture" / "template_view.png")  # the geometric edit alone
 
-    def greener(image, pixels):  # how much greener than the template, on average
-        return float(np.mean((image - template["rgb"])[pixels] @ np.array([-1.0, 1.0, 0.0])))
+    def greener(image, pixels):
+        return _greener(image, template["rgb"], pixels)
 
     assert greener(target, green) > 0.2  # the target: ~0.29
     assert greener(edit["rgb"], green) > 0.15
@@ -228,9 +248,115 @@ def test_hybrid_cli_with_two_targets_and_option_errors(hybrid_run, capsys):
         (hybrid + ["--target-texture", both], "--mode hybrid needs --target"),
         (hybrid, "--mode hybrid needs --target"),
         (hybrid + ["--target", both, "--method", "naive"], "--method naive is a baseline"),
-        (hybrid + ["--target", both, "--mask-source", "features"], "does not apply to --mode"),
+        (hybrid + ["--target", both, "--mask-source", "features"], "features/field.pt: run"),
         (hybrid + two[:2] + ["--reference", str(run / "nope.png")], "does not exist"),
     ):
         assert sine_cli.main(args) == 2, args
         err = capsys.readouterr().err.strip()
         assert message in err and "\n" not in err, (message, err)
+
+
+# ---- feature maps of the edited shape and the semantic masks they give ---------------------
+@pytest.fixture(scope="module")
+def feature_run(tiny_fitted_run, tmp_path_factory):
+    """A copy of the tiny run (the template of `hybrid_run`) with a feature field distilled in
+    the copy (the shared run stays without one) and the targets of `_write_targets`."""
+    run = tmp_path_factory.mktemp("hybrid_features") / "run"
+    shutil.copytree(tiny_fitted_run, run, ignore=shutil.ignore_patterns("edits"))
+    if not (run / "features" / "field.pt").is_file():
+        distill_features(run, FeaturesConfig(**TINY_FEATURES), progress=False)
+    _write_targets(run)
+    return run
+
+
+class _Rotation(torch.nn.Module):
+    """x [N, 3] -> x @ R^T: a rigid deformation field (the strength is ignored)."""
+
+    def __init__(self, rotation: np.ndarray):
+        super().__init__()
+        self.register_buffer("r", torch.as_tensor(rotation, dtype=torch.float32))
+        self.unused = torch.nn.Parameter(torch.zeros(1))  # warp_vertices reads the dtype here
+
+    def forward(self, x: torch.Tensor, strength: float = 1.0) -> torch.Tensor:
+        return x @ self.r.T
+
+
+def test_feature_maps_of_a_geometric_edit(feature_run):
+    """Through the identity, the template's feature maps; through a 30-degree turn R of the
+    object about the run's up axis (z) through the origin (F_dG = R^T, F'_dG = R), the template's
+    maps seen from the camera turned by R^T (the sampler's sphere is centred on the origin, so
+    the samples are the same points turned), with the edit's silhouette."""
+    scene = load_template_scene(RunDir(feature_run), torch.device("cpu"))
+    freeze(scene.field)
+    band = scene.fit_config.band_width
+    frames = RunDir(feature_run).load_cameras().frames
+    template = FeatureMapRenderer(feature_run, "cpu", render_scale=1.0)
+
+    identity = EditingField(scene.field.grid.cfg)
+    for deform in (identity.deform, identity.forward_deform):
+        torch.nn.init.zeros_(deform.mlp[-1].weight)
+        torch.nn.init.zeros_(deform.mlp[-1].bias)
+    same = deformed_template(scene, freeze(identity), band)
+    through = FeatureMapRenderer(feature_run, "cpu", render_scale=1.0, geometry=same)
+    for k in (VIEW, VIEW + 4):
+        a, on_a = template(frames[k])
+        b, on_b = through(frames[k])
+        assert np.array_equal(on_a, on_b) and on_a.sum() > 500
+        assert torch.allclose(a, b, atol=1e-5), (a - b).abs().max()
+
+    c, s = np.cos(np.pi / 6), np.sin(np.pi / 6)
+    turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    rigid = EditingField(scene.field.grid.cfg)
+    rigid.deform, rigid.forward_deform = _Rotation(turn.T), _Rotation(turn)
+    turned = deformed_template(scene, freeze(rigid), band)
+    edited = FeatureMapRenderer(feature_run, "cpu", render_scale=1.0, geometry=turned)
+    pose = np.eye(4)
+    pose[:3, :3] = turn.T
+    for k in (0, VIEW):
+        feats, on = edited(frames[k])
+        silhouette = turned.render_view(frames[k])["opacity"] >= 0.5
+        assert np.array_equal(on, silhouette)  # the edited object's silhouette ...
+        before, on_before = template(frames[k])
+        assert (on != on_before).sum() > 150  # ... moved (measured: 334 and 199 pixels)
+        assert (feats - before).abs()[:, torch.from_numpy(on & on_before)].mean() > 0.2
+        seen, on_seen = template(
+            frames[k].replace(camera_to_world=pose @ frames[k].camera_to_world)
+        )
+        assert np.array_equal(on, on_seen)
+        # measured: at most 6e-4 (features up to ~25; float rounding of the turned rays)
+        assert (feats - seen).abs()[:, torch.from_numpy(on)].max() < 1e-2
+
+
+def test_hybrid_semantic_masks_recolour_the_part_view_k_does_not_see(hybrid_run, feature_run):
+    """The same edit as `hybrid_run`'s "full" (lifted region) with the run's feature field: the
+    semantic masks of the edited shape let the texture steps turn the body green on the side
+    opposite view K too, where the lifted region keeps the template's colours."""
+    metrics = run_hybrid_edit(
+        feature_run,
+        VIEW,
+        "semantic",
+        GeometryEditConfig(**TINY_GEOMETRY),
+        TextureEditConfig(**TINY_TEXTURE),  # mask_source auto: features
+        target=feature_run / "tall_green.png",
+        region_texture=feature_run / "green.png",
+        progress=False,
+    )
+    assert metrics["mask_source"] == "features"
+    frames = RunDir(feature_run).load_cameras().frames
+    template = load_scene(feature_run, device="cpu")  # the template of both runs
+    semantic = load_scene(feature_run, edit="semantic", device="cpu")
+    lifted = load_scene(hybrid_run[0], edit="full", device="cpu")
+    greener = {}
+    for k in (VIEW, (VIEW + 4) % len(frames)):
+        before = template.render_view(frames[k])
+        on_part = read_label_map(feature_run / "labels" / frames[k].name) == BODY
+        on_part &= before["opacity"] > 0.5
+        for name, edit in (("semantic", semantic), ("lifted", lifted)):
+            after = edit.render_view(frames[k])
+            pixels = on_part & (after["opacity"] > 0.5)
+            greener[name, k] = _greener(after["rgb"], before["rgb"], pixels)
+    far = (VIEW + 4) % len(frames)
+    # measured: view K 0.25 / 0.29, the far side 0.22 / 0.015
+    assert greener["semantic", VIEW] > 0.15 and greener["lifted", VIEW] > 0.15, greener
+    assert abs(greener["lifted", far]) < 0.05, greener
+    assert greener["semantic", far] > 0.15, greener
