@@ -343,17 +343,18 @@ def summary_sheet(tiles: list[np.ndarray], lines: list[str], tile_width: int) ->
     return np.concatenate([header, *body, text_strip(lines, width, scale)], axis=0)
 
 
-def compare_video(dirs: list[Path], path: Path, fps: float) -> int:
-    """Side-by-side video of folders of frames with the same names (left to right); frames."""
+def compare_video(dirs: list[Path], names: list[str], path: Path, fps: float) -> int:
+    """Side-by-side video of folders of frames with the same file names (left to right,
+    labelled `names`); returns the frame count."""
     from render.frames import strip
     from render.io import read_image
     from render.video import VideoWriter
 
-    names = sorted(p.name for p in (dirs[0] / "rgb").glob("*.png"))
+    frames = sorted(p.name for p in (dirs[0] / "rgb").glob("*.png"))
     with VideoWriter(path, fps) as video:
-        for name in names:
-            video.write(strip([read_image(d / "rgb" / name) for d in dirs], [d.name for d in dirs]))
-    return len(names)
+        for frame in frames:
+            video.write(strip([read_image(d / "rgb" / frame) for d in dirs], names))
+    return len(frames)
 
 
 # ---- the demo -----------------------------------------------------------------------------
@@ -577,7 +578,8 @@ def output_stages(cfg: DemoConfig, run, gt_dirs: dict, k: int, record, clock: Cl
         for name, scene in videos.items():
             video = out / files[f"{name}_video"]
             render_frames(scene, cams, out / "orbit" / name, video=video, fps=fps)
-        compare_video([out / "orbit" / v for v in videos], paths[-1], fps)
+        names = ["template", "geometric edit", "texture edit"]
+        compare_video([out / "orbit" / v for v in videos], names, paths[-1], fps)
         record.record("render", key)
     clock.finish("render", skip)
 
