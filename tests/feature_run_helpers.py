@@ -21,6 +21,32 @@ TINY_FIT = dict(
     previews=0,
     checkpoint_every=1000,
 )
+# tiny editing runs (64 px, a few dozen steps) shared by the geometry, texture and hybrid tests
+TINY_GEOMETRY_EDIT = dict(
+    iterations=30,
+    batch_rays=256,
+    prior_points=300,
+    cycle_points=200,
+    smooth_points=200,
+    anchor_points=200,
+    previews=0,
+    threads=1,
+    log_every=1,
+    rebuild_every=25,
+    warmup_steps=5,
+    gate=False,  # the tiny prior moves a handful of vertices: let the loss fall everywhere
+)
+TINY_TEXTURE_EDIT = dict(
+    iterations=30,
+    coarse_to_fine=0.2,
+    tex_size=48,
+    patch_size=32,
+    jitter_copies=1,
+    previews=0,
+    threads=1,
+    log_every=1,
+    tile=32,
+)
 TINY_FEATURES = dict(
     iterations=60,
     batch_rays=512,

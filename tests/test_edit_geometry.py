@@ -12,6 +12,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 import torch
+from feature_run_helpers import TINY_GEOMETRY_EDIT
 
 import sine_cli
 from edit import geometry_losses as L
@@ -314,20 +315,6 @@ def test_read_target_alpha_aspect_and_resize(tmp_path):
 
 # ---- a tiny edit end to end ---------------------------------------------------------------
 VIEW = 0
-TINY_EDIT = dict(
-    iterations=30,
-    batch_rays=256,
-    prior_points=300,
-    cycle_points=200,
-    smooth_points=200,
-    anchor_points=200,
-    previews=0,
-    threads=1,
-    log_every=1,
-    rebuild_every=25,
-    warmup_steps=5,
-    gate=False,  # the tiny prior moves a handful of vertices: let the loss fall everywhere
-)
 
 
 @pytest.fixture(scope="module")
@@ -346,7 +333,7 @@ def edit_run(tiny_fitted_run, tmp_path_factory):
     image, alpha = stretch_axis(view["rgb"], view["opacity"], "y", 1.3, middle, top)
     background = scene.background().detach().numpy()
     write_rgba(run / "target.png", image, alpha, background=background)
-    cfg = GeometryEditConfig(**TINY_EDIT)
+    cfg = GeometryEditConfig(**TINY_GEOMETRY_EDIT)
     metrics = run_geometry_edit(run, VIEW, run / "target.png", "full", cfg, progress=False)
     return run, metrics
 
@@ -370,7 +357,7 @@ def test_edit_lowers_l_geo_and_writes_its_outputs(edit_run):
 
 def test_interrupted_edit_resumes_bit_exactly(edit_run):
     run, _ = edit_run
-    cfg = GeometryEditConfig(**TINY_EDIT)
+    cfg = GeometryEditConfig(**TINY_GEOMETRY_EDIT)
     # stop between two sampler rebuilds (every 25 steps): the resumed run must sample as before
     assert run_geometry_edit(
         run, VIEW, run / "target.png", "resumed", cfg, progress=False, stop_at=12

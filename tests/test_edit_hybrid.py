@@ -13,7 +13,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from feature_run_helpers import TINY_FEATURES
+from feature_run_helpers import TINY_FEATURES, TINY_GEOMETRY_EDIT, TINY_TEXTURE_EDIT
 
 import sine_cli
 from edit.editing_field import EditingField
@@ -33,30 +33,6 @@ from render.template_field import freeze
 VIEW = 2  # tiny run: the car's side
 BODY = 1  # label of the car's body
 
-TINY_GEOMETRY = dict(
-    iterations=30,
-    batch_rays=256,
-    prior_points=300,
-    cycle_points=200,
-    smooth_points=200,
-    anchor_points=200,
-    previews=0,
-    threads=1,
-    log_every=1,
-    warmup_steps=5,
-    gate=False,  # as tests/test_edit_geometry.py: the tiny prior moves few vertices
-)
-TINY_TEXTURE = dict(
-    iterations=30,
-    coarse_to_fine=0.2,
-    tex_size=48,
-    patch_size=32,
-    jitter_copies=1,
-    previews=0,
-    threads=1,
-    log_every=1,
-    tile=32,
-)
 GEOMETRY_TERMS = {"silhouette", "gp", "cyc", "gr", "reg"}  # one target: no photometric term
 TEXTURE_TERMS = {"reg", "photometric", "cls", "structure", "reg_field"}
 
@@ -106,8 +82,8 @@ def hybrid_run(tiny_fitted_run, tmp_path_factory):
         run,
         VIEW,
         "full",
-        GeometryEditConfig(**TINY_GEOMETRY),
-        TextureEditConfig(**TINY_TEXTURE),
+        GeometryEditConfig(**TINY_GEOMETRY_EDIT),
+        TextureEditConfig(**TINY_TEXTURE_EDIT),
         target=run / "tall_green.png",
         region_texture=run / "green.png",
         progress=False,
@@ -178,8 +154,8 @@ def test_interrupted_hybrid_edit_resumes_bit_exactly(hybrid_run):
     """Stopped in the geometric steps, then in the texture steps: the same parameters as an
     uninterrupted run."""
     run, _ = hybrid_run
-    geometry = GeometryEditConfig(**{**TINY_GEOMETRY, "iterations": 8, "rebuild_every": 5})
-    texture = TextureEditConfig(**{**TINY_TEXTURE, "iterations": 8, "tex_views": 0})
+    geometry = GeometryEditConfig(**{**TINY_GEOMETRY_EDIT, "iterations": 8, "rebuild_every": 5})
+    texture = TextureEditConfig(**{**TINY_TEXTURE_EDIT, "iterations": 8, "tex_views": 0})
 
     def edit(name, **kwargs):
         return run_hybrid_edit(
@@ -335,8 +311,8 @@ def test_hybrid_semantic_masks_recolour_the_part_view_k_does_not_see(hybrid_run,
         feature_run,
         VIEW,
         "semantic",
-        GeometryEditConfig(**TINY_GEOMETRY),
-        TextureEditConfig(**TINY_TEXTURE),  # mask_source auto: features
+        GeometryEditConfig(**TINY_GEOMETRY_EDIT),
+        TextureEditConfig(**TINY_TEXTURE_EDIT),  # mask_source auto: features
         target=feature_run / "tall_green.png",
         region_texture=feature_run / "green.png",
         progress=False,

@@ -13,6 +13,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from feature_run_helpers import TINY_TEXTURE_EDIT
 
 import sine_cli
 from edit.compositor import EPS, TAU, Compositor, composite_hwc
@@ -286,17 +287,6 @@ def test_lifted_region_follows_the_painted_half_and_keeps_the_unseen_side(tiny_f
 
 
 # ---- a tiny texture edit end to end ---------------------------------------------------------
-TINY_TEXTURE = dict(
-    iterations=30,
-    coarse_to_fine=0.2,
-    tex_size=48,
-    patch_size=32,
-    jitter_copies=1,
-    previews=0,
-    threads=1,
-    log_every=1,
-    tile=32,
-)
 
 
 @pytest.fixture(scope="module")
@@ -312,7 +302,7 @@ def texture_run(tiny_fitted_run, tmp_path_factory):
     write_mask(run / "region.png", region)
     image = recolor_region(view["rgb"], region, 120.0)
     write_rgba(run / "target.png", image, view["opacity"], background=scene.background().numpy())
-    cfg = TextureEditConfig(**TINY_TEXTURE)
+    cfg = TextureEditConfig(**TINY_TEXTURE_EDIT)
     args = (run, VIEW, run / "target.png", "full", cfg)
     metrics = run_texture_edit(*args, region=run / "region.png", progress=False)
     return run, metrics
@@ -355,7 +345,7 @@ def test_texture_edit_lowers_its_loss_and_changes_the_part_most(texture_run):
 
 def test_interrupted_texture_edit_resumes_bit_exactly(texture_run):
     run, _ = texture_run
-    cfg = TextureEditConfig(**TINY_TEXTURE)
+    cfg = TextureEditConfig(**TINY_TEXTURE_EDIT)
     args = (run, VIEW, run / "target.png", "resumed", cfg)
     kwargs = {"region": run / "region.png", "progress": False}
     assert run_texture_edit(*args, **kwargs, stop_at=10) == {"step": 10}
@@ -380,7 +370,7 @@ def test_texture_baselines_and_scene(texture_run):
         ("sum", {"compositor": False, "tex_views": 0, "iterations": 16}),
     )
     for name, change in variants:
-        cfg = dataclasses.replace(TextureEditConfig(**TINY_TEXTURE), **change)
+        cfg = dataclasses.replace(TextureEditConfig(**TINY_TEXTURE_EDIT), **change)
         run_texture_edit(
             run, VIEW, run / "target.png", name, cfg, region=run / "region.png", progress=False
         )
