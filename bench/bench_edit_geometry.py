@@ -44,6 +44,7 @@ VARIANTS = {
     "no_cyc": {"w_cyc": 0.0},
     "no_reg": {"w_reg": 0.0},
     "symmetric": {"symmetric": True},
+    "band_005": {"band_width": 0.05},  # the old default band; now: the template fit's band
 }
 
 

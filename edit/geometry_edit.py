@@ -35,6 +35,7 @@ proxy band for sampling.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -113,8 +114,12 @@ class GeometryEditConfig(LoopOptions):
     jitter: float = option(
         0.01, "positional jitter (run units) of L_gr and of surface samples", low=0
     )
-    band_width: float = option(
-        0.05, "half-width of the sampling band around the edited proxy", low=1e-4, high=0.5
+    band_width: float | None = option(
+        None,
+        "half-width of the sampling band around the edited proxy (default: the template fit's "
+        "band, so the edit samples exactly as the template wherever nothing moved)",
+        low=1e-4,
+        high=0.5,
     )
     rebuild_every: int = option(
         25, "steps between re-warping the proxy and rebuilding its BVH", low=1
@@ -261,6 +266,13 @@ class GeometryTraining:
     groups: list[dict]  # Adam parameter groups, named
     schedules: dict  # group name -> learning-rate factor of the step
     begin: Callable[[torch.Generator], Callable[[int], dict[str, torch.Tensor]]]
+
+
+def with_fit_band(cfg: GeometryEditConfig, fit_cfg) -> GeometryEditConfig:
+    """`cfg` with an unset band_width taken from the template's fit config."""
+    if cfg.band_width is not None:
+        return cfg
+    return dataclasses.replace(cfg, band_width=float(fit_cfg.band_width))
 
 
 def geometry_training(
@@ -485,6 +497,7 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
     work.mkdir(parents=True, exist_ok=True)
 
     template, background, fit_cfg = load_fitted(run.root, device)
+    cfg = with_fit_band(cfg, fit_cfg)
     sampler = make_sampler(fit_cfg, run)
     setup = prepare(
         run, work, view, target, mask, region, cfg, template, background, sampler, device

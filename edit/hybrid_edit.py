@@ -54,7 +54,13 @@ import torch
 
 from edit import geometry_edit, texture_edit
 from edit.editing_scene import deformed_template, scene_from_folder
-from edit.geometry_edit import GeometryEditConfig, geometry_training, input_digests, pick_view
+from edit.geometry_edit import (
+    GeometryEditConfig,
+    geometry_training,
+    input_digests,
+    pick_view,
+    with_fit_band,
+)
 from edit.template_scene import load_template_scene
 from edit.texture_edit import TextureEditConfig, texture_parts, texture_steps, write_previews
 from recon.rundir import RunDir
@@ -193,6 +199,7 @@ def _edit(
     work.mkdir(parents=True, exist_ok=True)
 
     template = load_template_scene(run, device)
+    gcfg = with_fit_band(gcfg, template.fit_config)
     field, background, sampler = template.field, template.background, template.sampler
     geo_setup = geometry_edit.prepare(
         run,

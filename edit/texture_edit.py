@@ -114,7 +114,12 @@ class TextureEditConfig(LoopOptions):
         True, "blend I_o and I_m with the 2D compositor (--no-compositor: I_o + I_m, a baseline)"
     )
     iterations: int = option(600, "training steps", low=1)
-    lr_grid: float = option(3e-2, "Adam learning rate of F_dT's hash table", low=1e-12)
+    lr_grid: float = option(
+        1e-3,
+        "Adam learning rate of F_dT's hash table (higher: sharper, but the fine levels fit "
+        "view K's noise and mottle the other views)",
+        low=1e-12,
+    )
     lr_mlp: float = option(1e-3, "Adam learning rate of F_dT's MLP", low=1e-12)
     mod_dropout: float = option(
         0.5,

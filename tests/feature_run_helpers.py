@@ -35,6 +35,7 @@ TINY_GEOMETRY_EDIT = dict(
     rebuild_every=25,
     warmup_steps=5,
     gate=False,  # the tiny prior moves a handful of vertices: let the loss fall everywhere
+    band_width=0.05,  # 30 steps, one BVH rebuild: a band wider than the fit's lets the surface move
 )
 TINY_TEXTURE_EDIT = dict(
     iterations=30,

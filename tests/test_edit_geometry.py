@@ -437,3 +437,27 @@ def test_edit_gate_values_and_reload():
     reloaded.load_state_dict(editing.state_dict())
     assert reloaded.gate.grid.shape == (1, 1, 64, 64, 64)
     assert torch.equal(reloaded.gate(x), w) and reloaded.texture.gate is reloaded.gate
+
+
+def test_an_identity_edit_renders_the_template_exactly_in_the_fit_band(tiny_fitted_run):
+    """Sampled in the template fit's band (the default: band_width None), an editing field
+    that moves nothing renders the template's pixels; a wider band samples other points, so
+    even untouched parts of an edit would differ from the template."""
+    from edit.editing_scene import deformed_template
+    from edit.geometry_edit import with_fit_band
+    from edit.template_scene import load_template_scene
+
+    scene = load_template_scene(RunDir(tiny_fitted_run), torch.device("cpu"))
+    freeze(scene.field)
+    band = with_fit_band(GeometryEditConfig(), scene.fit_config).band_width
+    assert band == scene.fit_config.band_width
+    identity = EditingField(scene.field.grid.cfg)
+    for deform in (identity.deform, identity.forward_deform):
+        torch.nn.init.zeros_(deform.mlp[-1].weight)
+        torch.nn.init.zeros_(deform.mlp[-1].bias)
+    cam = RunDir(tiny_fitted_run).load_cameras().frames[3]
+    reference = scene.render_view(cam)["rgb"]
+    same = deformed_template(scene, freeze(identity), band).render_view(cam)["rgb"]
+    wider = deformed_template(scene, freeze(identity), band + 0.01).render_view(cam)["rgb"]
+    assert np.abs(same - reference).max() < 1e-4
+    assert np.abs(wider - reference).max() > 1e-3
