@@ -45,6 +45,7 @@ VARIANTS = {
     "no_reg": {"w_reg": 0.0},
     "symmetric": {"symmetric": True},
     "band_005": {"band_width": 0.05},  # the old default band; now: the template fit's band
+    "w_reg_1": {"w_reg": 1.0},  # the paper's weight (the default is 3)
 }
 
 

@@ -102,7 +102,11 @@ class GeometryEditConfig(LoopOptions):
     w_gr: float = option(0.1, "weight of the deformation smoothness L_gr (paper: 0.1)", low=0)
     w_cyc: float = option(10.0, "weight of the cycle loss L_cyc (paper: 10)", low=0)
     w_reg: float = option(
-        1.0, "weight of the regularisation L_reg outside the edited region", low=0
+        3.0,
+        "weight of the regularisation L_reg outside the edited region (the paper adds it with "
+        "weight 1; 3 keeps the rest closer to the template at no cost to the edit: "
+        "bench/RESULTS.md, geometric and texture editing)",
+        low=0,
     )
     w_silhouette: float = option(1.0, "weight of the silhouette BCE inside L_gt", low=0)
     prior_points: int = option(

@@ -134,7 +134,9 @@ class TextureEditConfig(LoopOptions):
         0.1, "learning rates decay exponentially to this factor", low=1e-6, high=1.0
     )
     w_photometric: float = option(1.0, "weight of the photometric term on view K's region", low=0)
-    w_reg: float = option(1.0, "weight of the regularisation L_reg outside the edited part", low=0)
+    w_reg: float = option(
+        3.0, "weight of the regularisation L_reg outside the edited part (as geometry's)", low=0
+    )
     gate: bool = option(
         True,
         "multiply F_dT by a 3D gate: 1 near the surface the views' masks let change, 0 beyond "
