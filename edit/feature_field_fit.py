@@ -299,20 +299,25 @@ def build_pool(
 
 
 # ---- loading ------------------------------------------------------------------------------
-def load_features(run_dir, device: torch.device | None = None):
-    """(template, feature field, sampler) of a run with a distilled feature field."""
+def load_feature_field(run_dir, device: torch.device | None = None) -> FeatureField:
+    """The distilled feature field of a run (RUN/features/field.pt), in eval mode."""
     run = RunDir(run_dir)
     path = run.features / "field.pt"
     if not path.is_file():
         raise SineError(f"{path} not found; run `sine features {run.root}` first")
-    device = device or torch.device("cpu")
     data = load_torch(path)
     if not isinstance(data.get("field_config"), str):
         raise SineError(f"{path} is from an older version; run `sine features {run.root}` again")
     field = FeatureField(from_json(FeatureFieldConfig, data["field_config"]))
     field.load_state_dict(data["field"])
-    template, sampler = load_template_and_sampler(run, device)
-    return template, field.to(device).eval(), sampler
+    return field.to(device or torch.device("cpu")).eval()
+
+
+def load_features(run_dir, device: torch.device | None = None):
+    """(template, feature field, sampler) of a run with a distilled feature field."""
+    field = load_feature_field(run_dir, device)
+    template, sampler = load_template_and_sampler(RunDir(run_dir), device or torch.device("cpu"))
+    return template, field, sampler
 
 
 def load_template_and_sampler(run: RunDir, device):

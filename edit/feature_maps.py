@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 
 from edit.editing_scene import EditedField
-from edit.feature_field_fit import load_features
+from edit.feature_field_fit import load_feature_field, load_features
 from render.device import pick_device
 from render.feature_field import render_feature_map
 
@@ -45,9 +45,11 @@ class FeatureMapRenderer:
         self.device = pick_device(device)
         self.space, self.render_scale = space, render_scale
         self.min_opacity, self.chunk = min_opacity, chunk
-        self.template, self.field, self.sampler = load_features(run_dir, self.device)
         self.warp = None
-        if geometry is not None:
+        if geometry is None:
+            self.template, self.field, self.sampler = load_features(run_dir, self.device)
+        else:  # the scene's field and sampler: the template is not loaded a second time
+            self.field = load_feature_field(run_dir, self.device)
             self.template, self.sampler = geometry.field, geometry.sampler
             if isinstance(geometry.field, EditedField):
                 self.warp = geometry.field.canonical

@@ -77,11 +77,14 @@ def path_cameras(run_dir, cfg: RenderConfig) -> list:
     return orbit_cameras(frames, cfg.orbit if cfg.orbit is not None else 60, cfg.width)
 
 
-def feature_images(run_dir, device: str, chunk: int):
-    """camera -> (PCA coefficients [H, W, D], object mask [H, W]) of the run's feature field."""
+def feature_images(run_dir, template, chunk: int):
+    """camera -> (PCA coefficients [H, W, D], object mask [H, W]) of the run's feature field,
+    rendered with the already loaded `template` scene's field and sampler."""
     from edit.feature_maps import FeatureMapRenderer
 
-    renderer = FeatureMapRenderer(run_dir, device, render_scale=1.0, chunk=chunk)
+    renderer = FeatureMapRenderer(
+        run_dir, str(template.device), render_scale=1.0, chunk=chunk, geometry=template
+    )
 
     def feature_map(camera):
         feats, on_object = renderer(camera)
@@ -107,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     with torch_threads(cfg.threads):
         scene = load_scene(args.run, args.edit, args.strength, cfg.device)
         reference = load_scene(args.run, None, device=cfg.device) if cfg.compare else None
-        feature_map = feature_images(args.run, cfg.device, cfg.chunk) if cfg.features else None
+        feature_map = feature_images(args.run, scene, cfg.chunk) if cfg.features else None
         summary = render_frames(
             scene,
             cameras,
