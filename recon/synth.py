@@ -531,13 +531,19 @@ def render_views(
     lights=DEFAULT_LIGHTS,
     ambient: float = 0.35,
     progress: bool = False,
+    supersample: int = 1,
 ) -> list[dict]:
     """Ray casts `mesh` from each camera -> per view dict(rgb [H,W,3] float32, mask [H,W] bool,
     depth [H,W] float32 camera z (0 = background), labels [H,W] int part ids (0 = background)).
 
-    `background`: an RGB colour or a `Backdrop`."""
+    `background`: an RGB colour or a `Backdrop`. `supersample` (odd): rgb is the mean of
+    supersample x supersample rays spread over each pixel (a camera pixel integrates the light
+    over its area; one ray per pixel aliases fine texture); mask, depth and labels come from the
+    centre ray, i.e. the pixel centre, as with one ray."""
     from tqdm import tqdm
 
+    if supersample < 1 or supersample % 2 == 0:
+        raise SineError(f"supersample must be an odd number >= 1 (got {supersample})")
     caster = MeshRaycaster((mesh.vertices, mesh.faces))
     face_n, vert_n = mesh.normals()
     light_dirs = np.array([np.asarray(d) / np.linalg.norm(d) for d, _ in lights], np.float32)
@@ -545,7 +551,10 @@ def render_views(
     backdrop = background if isinstance(background, Backdrop) else Backdrop(colour=background)
     views, cache = [], {}
     for cam in tqdm(cameras, desc="render", unit="view", disable=not progress):
-        rays, z_per_t = _camera_rays(cam, cache)
+        s = supersample
+        h, w = cam.height, cam.width
+        fine = cam.resized(w * s, h * s) if s > 1 else cam
+        rays, z_per_t = _camera_rays(fine, cache)
         dirs = rays[:, 3:]
         hits = caster.cast(rays[:, :3], dirs)
         t, mask = hits.t, hits.hit
@@ -567,19 +576,21 @@ def render_views(
         diffuse = np.einsum("nl,l->n", np.clip(cosines, 0, None), light_power)  # [N]
         shade = np.clip(ambient + (1 - ambient) * diffuse, 0, 1.2)[:, None]
 
-        h, w = cam.height, cam.width
-        rgb = backdrop.pixels(cam, rays)
+        rgb = backdrop.pixels(fine, rays)
         rgb[mask] = np.clip(albedo * shade, 0, 1)
-        depth = np.zeros(h * w, np.float32)
+        depth = np.zeros(len(rays), np.float32)
         depth[mask] = t[mask] * z_per_t[mask]
-        lab = np.zeros(h * w, np.int64)
+        lab = np.zeros(len(rays), np.int64)
         lab[mask] = labels
+        # [H, s, W, s, ...]: each pixel's s x s rays; the centre one sits on the pixel centre
+        rgb = rgb.reshape(h, s, w, s, 3).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
+        c = s // 2
         views.append(
             {
-                "rgb": rgb.reshape(h, w, 3),
-                "mask": mask.reshape(h, w),
-                "depth": depth.reshape(h, w),
-                "labels": lab.reshape(h, w),
+                "rgb": rgb,
+                "mask": mask.reshape(h, s, w, s)[:, c, :, c],
+                "depth": depth.reshape(h, s, w, s)[:, c, :, c],
+                "labels": lab.reshape(h, s, w, s)[:, c, :, c],
             }
         )
     return views
@@ -741,6 +752,13 @@ class SynthConfig:
     edit_texture: Path | None = option(
         None, "texture edit: replace the mesh's texture image by this image instead"
     )
+    supersample: int = option(
+        3,
+        "rays per pixel side: the colour is the mean of N x N rays over each pixel, as a camera "
+        "pixel integrates light (1: one ray through the centre, which aliases fine texture); "
+        "odd; masks, depth and labels come from the centre ray",
+        low=1,
+    )
     format: str = option(
         "sine",
         "output layout: sine (images/, masks/, depth/, labels/, transforms.json, cameras.json) or "
@@ -770,6 +788,8 @@ def _validate(cfg: SynthConfig) -> None:
         raise SineError("--fov must be between 1 and 170 degrees")
     if not 0.05 <= cfg.fill <= 1.0:
         raise SineError("--fill must be in [0.05, 1]")
+    if cfg.supersample < 1 or cfg.supersample % 2 == 0:
+        raise SineError(f"--supersample must be an odd number >= 1 (got {cfg.supersample})")
     parse_background(cfg.background)
     for name in ("parts_plane", "edit_plane"):
         value = getattr(cfg, name)
@@ -876,7 +896,14 @@ def synthesize(cfg: SynthConfig, progress: bool = True) -> dict:
     out = Path(cfg.out)
 
     t1 = time.perf_counter()
-    views = render_views(mesh, cameras, background, ambient=cfg.ambient, progress=progress)
+    views = render_views(
+        mesh,
+        cameras,
+        background,
+        ambient=cfg.ambient,
+        progress=progress,
+        supersample=cfg.supersample,
+    )
     t_render = time.perf_counter() - t1
     t2 = time.perf_counter()
     stats = write_views(out, cameras, views, mesh)
@@ -899,7 +926,12 @@ def synthesize(cfg: SynthConfig, progress: bool = True) -> dict:
     for name, edited, params in edits:
         t3 = time.perf_counter()
         edit_views = render_views(
-            edited, cameras, background, ambient=cfg.ambient, progress=progress
+            edited,
+            cameras,
+            background,
+            ambient=cfg.ambient,
+            progress=progress,
+            supersample=cfg.supersample,
         )
         edit_dir = out / "edits" / name
         edit_stats = write_views(edit_dir, cameras, edit_views, edited)

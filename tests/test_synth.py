@@ -13,7 +13,9 @@ import pytest
 from recon.synth import (
     SynthConfig,
     load_mesh_file,
+    load_source,
     normalise,
+    render_views,
     ring_cameras,
     sample_texture,
     stretch_displacement,
@@ -25,7 +27,9 @@ from render.io import read_depth, read_image, read_label_map, read_mask
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 SPOT = DATA / "meshes" / "spot" / "spot_triangulated.obj"
-SMALL = dict(views=8, width=96, height=72)
+# One ray per pixel: the tests below compare pixels with the labels/depth of the same ray
+# (supersampling blends colours across part edges; tested on its own).
+SMALL = dict(views=8, width=96, height=72, supersample=1)
 
 
 @pytest.fixture(scope="module")
@@ -110,10 +114,30 @@ def test_masks_labels_depth_consistent(which, request):
         assert mask.shape == depth.shape == labels.shape == image.shape[:2] == (72, 96)
         np.testing.assert_array_equal(mask, depth > 0)
         np.testing.assert_array_equal(mask, labels > 0)
-        assert np.all(image[~mask] == 1.0)  # white background
+        # white background; a pixel the object only partly covers blends (supersampling)
+        near = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        assert np.all(image[~near] == 1.0)
         seen |= set(np.unique(labels[mask]).tolist())
     assert seen <= parts
     assert len(seen) >= 2  # several parts are visible
+
+
+def test_supersampling_averages_the_rays_over_each_pixel():
+    """supersample 3: each pixel's colour is the mean of the 3 x 3 rays a 3x larger camera casts
+    over it; mask, depth and labels are the centre ray's, i.e. what one ray per pixel gives."""
+    mesh, _, _ = load_source(SynthConfig(procedural="toycar"))
+    cam = ring_cameras(1, 24, 16, [20.0], 3.0, 40.0)[0]
+    single = render_views(mesh, [cam])[0]
+    fine = render_views(mesh, [cam.resized(72, 48)])[0]
+    ss = render_views(mesh, [cam], supersample=3)[0]
+    expected = fine["rgb"].reshape(16, 3, 24, 3, 3).mean(axis=(1, 3))
+    np.testing.assert_allclose(ss["rgb"], expected, atol=1e-6)
+    for key in ("mask", "depth", "labels"):
+        np.testing.assert_array_equal(ss[key], single[key])
+    edge = ss["mask"] != (cv2.dilate(ss["mask"].astype(np.uint8), np.ones((3, 3))) > 0)
+    assert np.abs(ss["rgb"] - single["rgb"])[edge].max() > 0.05  # the silhouette is softened
+    with pytest.raises(SineError, match="odd"):
+        render_views(mesh, [cam], supersample=2)
 
 
 def test_plane_parts_follow_the_plane(spot):
@@ -306,7 +330,15 @@ def test_material_groups_become_parts(tmp_path):
     )  # a square pyramid: two red sides, two blue sides and a blue base
     out = tmp_path / "out"
     synthesize(
-        SynthConfig(out=out, mesh=tmp_path / "a.obj", up_axis="z", views=4, width=48, height=40),
+        SynthConfig(
+            out=out,
+            mesh=tmp_path / "a.obj",
+            up_axis="z",
+            views=4,
+            width=48,
+            height=40,
+            supersample=1,
+        ),
         progress=False,
     )
     parts = {v: int(k) for k, v in json.loads((out / "parts.json").read_text()).items()}
