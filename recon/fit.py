@@ -133,6 +133,11 @@ class FitConfig(LoopOptions):
     refine_views: int = option(
         16, "training views rendered for the proxy refinement (evenly spaced; 0: all)", low=0
     )
+    pixel_jitter: bool = option(
+        False,
+        "train on rays through random points of their pixels instead of the centres (a pixel "
+        "integrates light over its area)",
+    )
     error_sampling: float = option(
         0.5,
         "fraction of each batch drawn in proportion to the rays' last squared errors "
@@ -223,6 +228,23 @@ class RayPool:
     miss_rgb: torch.Tensor  # [Q, 3] colours of rays that miss (for a learned background)
     errors: torch.Tensor  # [P] each ray's squared error when it was last trained on
     view: torch.Tensor  # [P] int64 index of the ray's training view
+    pixel_axes: torch.Tensor  # [V, 3, 3] per view: world vectors of +1 px in u, in v, and z
+
+
+def pixel_axes(cam) -> np.ndarray:
+    """[3, 3]: the world vectors of one pixel step in u and in v on the camera's z = 1 plane,
+    and the camera's z axis (for `jitter_in_pixels`)."""
+    rot = cam.camera_to_world[:3, :3]
+    return np.stack([rot[:, 0] / cam.fx, rot[:, 1] / cam.fy, rot[:, 2]])
+
+
+def jitter_in_pixels(dirs: torch.Tensor, axes: torch.Tensor, generator) -> torch.Tensor:
+    """Unit directions through pixel centres [n, 3] -> unit directions through a uniformly
+    random point of the same pixels [n, 3]; axes [n, 3, 3] from `pixel_axes`."""
+    on_plane = dirs / (dirs * axes[:, 2]).sum(-1, keepdim=True)  # [n, 3] at camera z = 1
+    shift = torch.rand(len(dirs), 2, generator=generator).to(dirs) - 0.5  # [n, 2] pixels
+    moved = on_plane + shift[:, :1] * axes[:, 0] + shift[:, 1:] * axes[:, 1]
+    return moved / moved.norm(dim=-1, keepdim=True)
 
 
 class RaySelector:
@@ -254,7 +276,7 @@ class RaySelector:
 
 
 def build_ray_pool(views, sampler, device: torch.device) -> RayPool:
-    o_all, d_all, c_all, m_all, h_all, miss, v_all = [], [], [], [], [], [], []
+    o_all, d_all, c_all, m_all, h_all, miss, v_all, axes = [], [], [], [], [], [], [], []
     n_total = 0
     has_masks = all(m is not None for _, _, m in views)
     for i, (cam, image, mask) in enumerate(views):
@@ -270,6 +292,7 @@ def build_ray_pool(views, sampler, device: torch.device) -> RayPool:
         c_all.append(rgb[hit])
         m_all.append(m[hit] if m is not None else torch.ones(int(hit.sum()), device=device))
         v_all.append(torch.full((int(hit.sum()),), i, dtype=torch.int64, device=device))
+        axes.append(pixel_axes(cam))
         h_all.append(hits[hit])
         miss.append(rgb[~hit][:: max(1, int((~hit).sum()) // 2000 + 1)])
     origins = torch.cat(o_all)
@@ -284,6 +307,7 @@ def build_ray_pool(views, sampler, device: torch.device) -> RayPool:
         torch.cat(miss),
         errors=torch.full((len(origins),), 0.05, device=device),  # ~ an untrained field's MSE
         view=torch.cat(v_all),
+        pixel_axes=torch.as_tensor(np.stack(axes), dtype=torch.float32, device=device),
     )
     if len(pool.origins) == 0:
         raise SineError(
@@ -535,6 +559,9 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
             def query(x, d):
                 return field(x, d, ray_codes.repeat_interleave(len(x) // len(ray_codes), 0))
 
+        dirs = pool.dirs[idx]  # [n, 3]
+        if cfg.pixel_jitter:  # the band of the centre ray holds: a pixel is << the band
+            dirs = jitter_in_pixels(dirs, pool.pixel_axes[pool.view[idx]], generator)
         behind = background
         if behind_capture:  # [n, 3]: outside the masks, the captured pixel itself
             outside = pool.mask[idx, None] < 0.5
@@ -542,7 +569,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         out = render_rays(
             query,
             pool.origins[idx],
-            pool.dirs[idx],
+            dirs,
             sampler,
             behind,
             hits=pool.hits[idx],

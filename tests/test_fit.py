@@ -7,7 +7,14 @@ import open3d as o3d
 import pytest
 import torch
 
-from recon.fit import FitConfig, fit_template, load_template, make_sampler
+from recon.fit import (
+    FitConfig,
+    fit_template,
+    jitter_in_pixels,
+    load_template,
+    make_sampler,
+    pixel_axes,
+)
 from recon.rundir import RunDir
 from render.cameras import Camera, CameraSet, look_at
 from render.errors import SineError
@@ -179,6 +186,23 @@ def test_object_metrics_on_hand_made_images():
     far[:, :6] = True  # beyond SSIM's 7 px window from column 16: unchanged
     assert masked_ssim(wrong_background, gt, far) == pytest.approx(1.0)
     assert masked_ssim(wrong_background, gt, mask) < 0.95
+
+
+def test_jittered_rays_stay_inside_their_pixels_and_cover_them():
+    """Rays through pixel centres, jittered: each projects back into its own pixel (within
+    +-0.5 px of the centre), and the offsets spread uniformly over it (variance 1/12)."""
+    cam = Camera(40, 30, 55.0, 60.0, 21.0, 14.5, look_at(np.array([2.0, -1.0, 1.5]), np.zeros(3)))
+    centres = cam.pixel_grid()  # [N, 2]
+    origins, dirs = cam.rays(centres)
+    axes = torch.as_tensor(pixel_axes(cam), dtype=torch.float32).expand(len(dirs), 3, 3)
+    gen = torch.Generator().manual_seed(0)
+    moved = jitter_in_pixels(torch.from_numpy(dirs), axes, gen).numpy()
+    np.testing.assert_allclose(np.linalg.norm(moved, axis=1), 1.0, atol=1e-6)
+    pixels, _ = cam.project(origins + 2.0 * moved)
+    offset = pixels - centres  # [N, 2]
+    assert np.abs(offset).max() <= 0.5 + 1e-3
+    np.testing.assert_allclose(offset.var(axis=0), 1 / 12, rtol=0.1)
+    assert np.abs(offset.mean(axis=0)).max() < 0.02
 
 
 def test_ray_selector_draws_in_proportion_to_the_last_errors():
