@@ -209,7 +209,7 @@ def test_ray_selector_draws_in_proportion_to_the_last_errors():
     from recon.fit import RayPool, RaySelector
 
     n = 1000
-    pool = RayPool(*([None] * 8), errors=torch.full((n,), 1e-4), view=None)
+    pool = RayPool(*([None] * 8), errors=torch.full((n,), 1e-4), view=None, pixel_axes=None)
     pool.errors[7] = 1.0  # one ray still wrong: ~0.9 of the error draws
     selector = RaySelector(pool, 0.5, torch.Generator().manual_seed(0))
     idx = selector.draw(2000)
