@@ -46,7 +46,6 @@ VARIANTS = {
     "symmetric": {"symmetric": True},
     "band_005": {"band_width": 0.05},  # the old default band; now: the template fit's band
     "w_reg_1": {"w_reg": 1.0},  # the paper's weight (the default is 3)
-    "smooth_003": {"prior_smoothing": 0.03},  # handle displacements median-filtered
 }
 
 

@@ -134,12 +134,6 @@ class GeometryEditConfig(LoopOptions):
         0.02, "depth tolerance (run units) of visible proxy vertices", low=0
     )
     arap_iterations: int = option(50, "ARAP iterations of the shape prior", low=1)
-    prior_smoothing: float = option(
-        0.0,
-        "radius (run units) of the median filter over the prior's handle displacements "
-        "(a lone flow error on a texture-poor surface then moves with its neighbours; 0: off)",
-        low=0,
-    )
     gate: bool = option(
         True,
         "restrict the editing field to near what the shape prior moved (beyond the paper: the "
@@ -215,7 +209,6 @@ def prepare(
             cfg.visibility_tol,
             cfg.symmetric,
             cfg.arap_iterations,
-            cfg.prior_smoothing,
         )
         save_prior(out, prior, run)
     write_image(out / "target.png", tgt.rgb)

@@ -10,9 +10,7 @@ From the template's rendering of the edited view and the user's target we build 
    the ray-cast depth of the proxy) and inside the editable region become handles: the vertex
    keeps its camera depth and moves to the back-projection of its corresponded pixel. Vertices
    that project outside the region are anchored where they are (hidden ones too); hidden ones
-   behind the region are free, so the far side of the edited part follows. Each handle's
-   displacement is then the median of its neighbours' (`smooth_handles`): flow errors on
-   texture-poor surfaces would otherwise make the prior's surface bumpy.
+   behind the region are free, so the far side of the edited part follows.
 3. **ARAP**: Open3D `deform_as_rigid_as_possible` deforms the proxy so that handles reach their
    targets and anchors stay; the hidden side follows rigidly.
 4. `symmetric=True`: the proxy's mirror plane (best of candidate planes through the centroid) is
@@ -186,20 +184,6 @@ def lift_handles(
     return Handles(ids, back_project(camera, dst, z[ids]), np.unique(anchors))
 
 
-def smooth_handles(handles: Handles, vertices: np.ndarray, radius: float) -> Handles:
-    """Each handle's displacement [3] replaced by the component-wise median of the handles'
-    displacements within `radius` of it (rest positions): a lone flow error (texture-poor
-    surfaces) no longer drags its vertex out of the surface its neighbours agree on, while a
-    step between moving parts survives wherever one side has the majority."""
-    if radius <= 0 or len(handles.ids) < 3:
-        return handles
-    rest = vertices[handles.ids]  # [H, 3]
-    moves = handles.targets - rest  # [H, 3]
-    groups = cKDTree(rest).query_ball_point(rest, radius)
-    smooth = np.stack([np.median(moves[g], axis=0) for g in groups])
-    return Handles(handles.ids, rest + smooth, handles.anchor_ids)
-
-
 # ---- symmetry -----------------------------------------------------------------------------
 def reflect(points: np.ndarray, plane: np.ndarray) -> np.ndarray:
     """Mirror points [N, 3] in the plane (n, D) with n.x = D, |n| = 1."""
@@ -291,7 +275,6 @@ def build_prior_mesh(
     visibility_tol: float = 0.02,
     symmetric: bool = False,
     iterations: int = 50,
-    smoothing: float = 0.0,
 ) -> PriorMesh:
     """The whole prior: correspondences -> handles -> (mirror) -> ARAP (see the module doc)."""
     flow = dense_flow(template_rgb, template_alpha, target_rgb, target_alpha)
@@ -310,7 +293,6 @@ def build_prior_mesh(
             "no proxy vertex is visible inside the editable region of the edited view; "
             "check --view (it must be the view the target was made from) and --region"
         )
-    handles = smooth_handles(handles, vertices, smoothing)
     plane = mirror_plane(vertices) if symmetric else None
     if symmetric and plane is None:
         raise SineError("--symmetric: the proxy mesh has no clear mirror plane")

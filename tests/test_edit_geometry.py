@@ -28,7 +28,6 @@ from edit.shape_prior import (
     lift_handles,
     mirror_handles,
     mirror_plane,
-    smooth_handles,
 )
 from edit.targets import stretch_axis, write_rgba
 from recon.rundir import RunDir
@@ -270,25 +269,6 @@ def test_mirror_handles_mirrors_displacements_onto_free_opposite_vertices():
     np.testing.assert_array_equal(out.ids, [0, 2, 4, 1])
     np.testing.assert_allclose(out.targets[3], v[1] + [-0.1, 0.2, 0.3])
     np.testing.assert_array_equal(out.anchor_ids, [3])
-
-
-def test_smooth_handles_replaces_a_lone_flow_error_and_keeps_a_step():
-    """A 10 x 10 grid of handles (spacing 0.01): the left half moves up 0.1, the right half
-    stays; one left handle got a wild displacement. Median over a 0.025 radius: the outlier
-    takes its neighbours' 0.1, and handles two or more cells from the step keep theirs."""
-    u, v = np.meshgrid(np.arange(10), np.arange(10), indexing="ij")
-    rest = np.stack([u.ravel() * 0.01, v.ravel() * 0.01, np.zeros(100)], axis=1)
-    moves = np.where((u.ravel() < 5)[:, None], [0.0, 0.0, 0.1], [0.0, 0.0, 0.0])
-    outlier = 22  # u = 2, v = 2
-    moves[outlier] = [0.05, -0.2, 0.4]
-    ids = np.arange(100)
-    out = smooth_handles(Handles(ids, rest + moves, np.array([], int)), rest, 0.025)
-    got = out.targets - rest
-    np.testing.assert_allclose(got[outlier], [0.0, 0.0, 0.1])
-    far = np.abs(u.ravel() - 4.5) > 1.5
-    expected = np.where((u.ravel() < 5)[:, None], [0.0, 0.0, 0.1], [0.0, 0.0, 0.0])
-    np.testing.assert_allclose(got[far], expected[far])
-    assert smooth_handles(out, rest, 0.0) is out  # radius 0: off
 
 
 # ---- the edit's inputs --------------------------------------------------------------------
