@@ -128,7 +128,7 @@ class TextureEditConfig(LoopOptions):
         low=0,
         high=1,
     )
-    lr_compositor: float = option(1e-2, "Adam learning rate of the compositor", low=1e-12)
+    lr_compositor: float = option(5e-3, "Adam learning rate of the compositor", low=1e-12)
     lr_naive: float = option(1e-3, "naive baseline: learning rate of the colour MLP", low=1e-12)
     lr_final_factor: float = option(
         0.1, "learning rates decay exponentially to this factor", low=1e-6, high=1.0
