@@ -157,6 +157,12 @@ class FitConfig(LoopOptions):
     seed: int = option(0, "random seed (ray batches, jitter, initialisation)", low=0)
     eval_views: int = option(0, "held-out views to render for the metrics (0: all)", low=0)
     eval_chunk: int = option(16384, "rays per chunk when rendering held-out views", low=1)
+    eval_supersample: int = option(
+        1,
+        "rays per pixel side when rendering held-out views (s x s rays box-filtered, as a "
+        "camera pixel integrates light; pairs with --pixel-jitter)",
+        low=1,
+    )
 
 
 def resolve_preset(cfg: FitConfig, run: RunDir | None = None) -> FitConfig:
@@ -407,7 +413,15 @@ def store_appearance(field: TemplateField, codes: torch.Tensor, cameras) -> None
 
 # ---- metrics ------------------------------------------------------------------------------
 def evaluate(
-    field, background, sampler, views, device, chunk=16384, preview_dir=None, n_previews=0
+    field,
+    background,
+    sampler,
+    views,
+    device,
+    chunk=16384,
+    preview_dir=None,
+    n_previews=0,
+    supersample=1,
 ):
     """Renders held-out views -> metrics: on object pixels (the views' masks; the headline,
     since a plain background inflates whole-image figures) and over whole images."""
@@ -420,7 +434,7 @@ def evaluate(
         if neutral is not None:  # the light of the nearest training views
             center = torch.as_tensor(cam.camera_to_world[:3, 3], device=neutral.device)
             field.appearance.copy_(field.code_for_camera(center))
-        out = render_image(cam, field, sampler, background, chunk=chunk, device=device)
+        out = render_image(cam, field, sampler, background, chunk, device, supersample)
         pred = np.clip(out["rgb"], 0.0, 1.0)
         psnrs.append(psnr(pred, image))
         ssims.append(float(structural_similarity(image, pred, channel_axis=2, data_range=1.0)))
@@ -459,6 +473,7 @@ def evaluate(
 _RUNTIME_KEYS = RUNTIME_KEYS + (
     "eval_chunk",
     "eval_views",
+    "eval_supersample",
     "previews",
 )
 
@@ -629,6 +644,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         cfg.eval_chunk,
         trainer.work_dir / "previews",
         cfg.previews,
+        cfg.eval_supersample,
     )
     rays_per_second = trainer.step * cfg.batch_rays / max(trainer.seconds, 1e-9)
     metrics.update(

@@ -138,21 +138,29 @@ def render_image(
     background=None,
     chunk: int = 16384,
     device: torch.device | None = None,
+    supersample: int = 1,
 ) -> dict[str, np.ndarray]:
     """One camera -> {"rgb" [H, W, 3], "opacity" [H, W], "depth" [H, W] (ray distance),
-    "z" [H, W] (camera depth), other channels [H, W, C]} as float32 numpy, without gradients."""
+    "z" [H, W] (camera depth), other channels [H, W, C]} as float32 numpy, without gradients.
+
+    `supersample` s > 1: every channel is the mean of s x s rays spread evenly over each pixel
+    (a box filter, as a camera pixel integrates light; s^2 times the rays)."""
     device = device or torch.device("cpu")
-    o, d = camera.rays()
+    s = int(supersample)
+    if s < 1:
+        raise ValueError(f"supersample must be >= 1 (got {supersample})")
+    h, w = camera.height, camera.width
+    fine = camera.resized(w * s, h * s) if s > 1 else camera
+    o, d = fine.rays()
     o = torch.from_numpy(o).to(device)
     d = torch.from_numpy(d).to(device)
     res = render_rays_chunked(field_query, o, d, sampler, background, chunk)
-    h, w = camera.height, camera.width
+    res["z"] = res["depth"] * torch.from_numpy(fine.z_per_unit_distance()).to(res["depth"])
     out = {}
     for k, v in res.items():
         if k in ("samples", "hit"):
             continue
-        v = v.detach().float().cpu().numpy()
-        out[k] = v.reshape(h, w, -1) if v.ndim == 2 else v.reshape(h, w)
-    out["z"] = out["depth"] * camera.z_per_unit_distance().reshape(h, w)
+        v = v.detach().float().cpu().numpy().reshape(h, s, w, s, -1).mean(axis=(1, 3))
+        out[k] = v if res[k].ndim == 2 else v[..., 0]
     out["samples_per_pixel"] = np.float32(int(res["samples"]) / (h * w))
     return out

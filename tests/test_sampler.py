@@ -190,3 +190,25 @@ def test_chunked_render_keeps_extra_channels_of_chunks_without_hits():
     assert out["feat"].shape == (8, 5)
     assert torch.all(out["feat"][:4] == 0) and torch.allclose(out["feat"][4:], torch.ones(4, 5))
     assert torch.all(out["opacity"][:4] == 0) and torch.allclose(out["opacity"][4:], torch.ones(4))
+
+
+def test_render_image_supersample_integrates_each_pixel():
+    """s x s rays per pixel, box-filtered: the rendered opacity sums to the sphere's projected
+    area (pi (f tan(asin(r / d)))^2 = 35.90 px^2 for r 0.5, d 3, f 20), which one ray per
+    pixel only counts in whole pixels; a pixel fully inside stays opaque red."""
+    from render.cameras import Camera, look_at
+
+    cam = Camera(
+        16, 12, 20.0, 20.0, 8.0, 6.0, camera_to_world=look_at(np.array([0, -3.0, 0]), np.zeros(3))
+    )
+    sampler = BandSampler(ProxyRaycaster(_sphere(0.5), inflate=0.05), n_band=8, n_coarse=2)
+    area = np.pi * (20.0 * np.tan(np.arcsin(0.5 / 3.0))) ** 2
+    one = render_image(cam, _solid_sphere_field, sampler, torch.ones(3))
+    five = render_image(cam, _solid_sphere_field, sampler, torch.ones(3), supersample=5)
+    assert five["rgb"].shape == (12, 16, 3) and five["feat"].shape == (12, 16, 1)
+    assert set(np.unique(np.round(one["opacity"], 3))) <= {0.0, 1.0}
+    assert 0 < np.sum((five["opacity"] > 0.01) & (five["opacity"] < 0.99))  # soft edge
+    assert abs(five["opacity"].sum() - area) < 0.5
+    assert abs(five["opacity"].sum() - area) < abs(one["opacity"].sum() - area)
+    np.testing.assert_allclose(five["rgb"][6, 8], [1.0, 0.0, 0.0], atol=1e-3)
+    np.testing.assert_allclose(five["rgb"][:, :, 1], 1.0 - five["opacity"], atol=1e-3)
