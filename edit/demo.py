@@ -116,6 +116,12 @@ class DemoConfig:
         low=0,
     )
     orbit: int | None = option(None, "frames of the orbit videos (default 48; --fast 24)", low=1)
+    video_supersample: int = option(
+        1,
+        "rays per pixel side of the orbit videos (1: fast; the stills and metrics use the "
+        "template's `sine fit --supersample`)",
+        low=1,
+    )
     device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
     force: bool = option(False, "redo every stage instead of resuming finished ones")
 
@@ -583,8 +589,11 @@ def output_stages(cfg: DemoConfig, run, gt_dirs: dict, k: int, record, clock: Cl
     }
 
     clock.start("render")
-    key = {"orbit": cfg.orbit, "fields": fields}
-    videos = {"template": template, "edit": edit, "texture": texture}
+    key = {"orbit": cfg.orbit, "fields": fields, "supersample": cfg.video_supersample}
+    videos = {
+        name: dataclasses.replace(scene, supersample=cfg.video_supersample)
+        for name, scene in (("template", template), ("edit", edit), ("texture", texture))
+    }
     paths = [out / files[f"{v}_video"] for v in videos] + [out / files["compare_video"]]
     skip = record.done("render", key, paths)
     if not skip:

@@ -138,7 +138,13 @@ class EditScene(Scene):
 
     def render_view(self, camera, chunk: int = 16384) -> dict[str, np.ndarray]:
         out = render_image(
-            camera, self.query(), self.sampler(), self.template.background, chunk, self.device
+            camera,
+            self.query(),
+            self.sampler(),
+            self.template.background,
+            chunk,
+            self.device,
+            self.supersample,
         )
         rgb = combine({k: torch.from_numpy(v) for k, v in out.items() if k in ("rgb", "mod")})
         return {"rgb": rgb.numpy(), **{k: out[k] for k in ("opacity", "depth", "z")}}
@@ -174,7 +180,13 @@ class TextureEditScene(EditScene):
             return out
 
         out = render_image(
-            camera, query, self.sampler(), self.template.background, chunk, self.device
+            camera,
+            query,
+            self.sampler(),
+            self.template.background,
+            chunk,
+            self.device,
+            self.supersample,
         )
         template, mod = (torch.from_numpy(out[k]).to(self.device) for k in ("rgb", "mod"))
         region = None
@@ -249,6 +261,7 @@ def scene_from_folder(run: RunDir, edit_dir, strength: float, device: torch.devi
         run=run,
         device=device,
         name=name,
+        supersample=template.supersample,
         template=template,
         editing=editing,
         strength=float(strength),

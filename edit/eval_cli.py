@@ -36,6 +36,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=None, help="JSON file for the metrics")
     parser.add_argument("--chunk", type=int, default=16384, help="rays rendered at once")
     parser.add_argument(
+        "--supersample",
+        type=int,
+        default=None,
+        help="rays per pixel side, box-filtered (None: the template's `sine fit --supersample`)",
+    )
+    parser.add_argument(
         "--device", default="auto", choices=["auto", "cpu", "cuda"], help="torch device"
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -51,12 +57,13 @@ def evaluate(
     device="auto",
     chunk=16384,
     progress=True,
+    supersample=None,
 ) -> dict:
     """Scores the template / edit of `run_dir` against `gt_dir` (see DESCRIPTION)."""
     from edit.scene import load_scene
     from render.evaluation import evaluate_views, load_gt_views
 
-    scene = load_scene(run_dir, edit, strength, device)
+    scene = load_scene(run_dir, edit, strength, device, supersample)
     gt_dir = Path(gt_dir) if gt_dir is not None else scene.run.root
     views = load_gt_views(gt_dir, scene.run.load_cameras(), split, region_masks)
     result = evaluate_views(scene, views, chunk, progress)
@@ -66,6 +73,7 @@ def evaluate(
         gt=str(gt_dir),
         region_masks=None if region_masks is None else str(region_masks),
         split=split,
+        supersample=scene.supersample,
     )
     return result
 
@@ -85,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
         args.device,
         args.chunk,
         not args.quiet,
+        args.supersample,
     )
     run_dir = RunDir(args.run)
     out = args.out or (run_dir.edit(args.edit) if args.edit else run_dir.template) / "eval.json"

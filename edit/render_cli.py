@@ -40,6 +40,12 @@ class RenderConfig:
         False, "also write feature-PCA images (DIR/features/; needs `sine features`, no --edit)"
     )
     compare: bool = option(False, "also write template | edit strips (DIR/compare/; needs --edit)")
+    supersample: int | None = option(
+        None,
+        "rays per pixel side, box-filtered (antialiasing; s^2 times the time; None: the "
+        "template's `sine fit --supersample`)",
+        low=1,
+    )
     chunk: int = option(16384, "rays rendered at once (lower it if memory is short)")
     device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
     threads: int = option(0, "torch CPU threads (0: torch's default)")
@@ -108,8 +114,10 @@ def run(args: argparse.Namespace) -> int:
         )
     cameras = path_cameras(args.run, cfg)
     with torch_threads(cfg.threads):
-        scene = load_scene(args.run, args.edit, args.strength, cfg.device)
-        reference = load_scene(args.run, None, device=cfg.device) if cfg.compare else None
+        scene = load_scene(args.run, args.edit, args.strength, cfg.device, cfg.supersample)
+        reference = None
+        if cfg.compare:
+            reference = load_scene(args.run, None, device=cfg.device, supersample=cfg.supersample)
         feature_map = feature_images(args.run, scene, cfg.chunk) if cfg.features else None
         summary = render_frames(
             scene,

@@ -18,12 +18,27 @@ __all__ = ["Scene", "TemplateScene", "load_scene", "load_template_scene", "radia
 
 
 def load_scene(
-    run_dir, edit: str | None = None, strength: float = 1.0, device: str = "auto"
+    run_dir,
+    edit: str | None = None,
+    strength: float = 1.0,
+    device: str = "auto",
+    supersample: int | None = None,
 ) -> Scene:
-    """The template of `run_dir`, or its edit `edit` (RUN/edits/NAME) at `strength` (0..1)."""
+    """The template of `run_dir`, or its edit `edit` (RUN/edits/NAME) at `strength` (0..1),
+    rendered with `supersample` rays per pixel side (None: the template's `sine fit
+    --supersample`)."""
     run = RunDir(run_dir)
     run.require("cameras")
     dev = pick_device(device) if isinstance(device, str) else device
+    scene = _load(run, edit, strength, dev)
+    if supersample is not None:
+        if supersample < 1:
+            raise SineError(f"--supersample must be >= 1 (got {supersample})")
+        scene.supersample = int(supersample)
+    return scene
+
+
+def _load(run: RunDir, edit: str | None, strength: float, dev) -> Scene:
     if edit is None:
         return load_template_scene(run, dev)
     if not run.edit(edit).is_dir():

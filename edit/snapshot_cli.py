@@ -96,7 +96,9 @@ def render_view(run, camera, cfg: ViewSourceConfig) -> tuple[np.ndarray, np.ndar
     with torch_threads(cfg.threads), torch.no_grad():
         field, background, fit_cfg = load_fitted(run.root, device)
         sampler = make_sampler(fit_cfg, run)
-        out = render_image(camera, field, sampler, background, chunk=cfg.chunk, device=device)
+        out = render_image(
+            camera, field, sampler, background, cfg.chunk, device, fit_cfg.supersample
+        )
         bg = background().detach().float().cpu().numpy().reshape(3)
     rgb = np.clip(out["rgb"], 0.0, 1.0).astype(np.float32)
     return rgb, np.clip(out["opacity"], 0.0, 1.0).astype(np.float32), bg

@@ -25,6 +25,7 @@ class Scene(ABC):
     run: RunDir
     device: torch.device
     name: str  # "template" or the edit's name
+    supersample: int = 1  # rays per pixel side in `render_view` (s x s rays box-filtered)
 
     @abstractmethod
     def render_view(self, camera, chunk: int = 16384) -> dict[str, np.ndarray]:
@@ -69,7 +70,15 @@ class TemplateScene(Scene):
     def render_view(self, camera, chunk: int = 16384) -> dict[str, np.ndarray]:
         from render.renderer import render_image
 
-        out = render_image(camera, self.field, self.sampler, self.background, chunk, self.device)
+        out = render_image(
+            camera,
+            self.field,
+            self.sampler,
+            self.background,
+            chunk,
+            self.device,
+            self.supersample,
+        )
         return {k: out[k] for k in ("rgb", "opacity", "depth", "z")}
 
     def colors_at(self, points: np.ndarray, normals: np.ndarray | None = None) -> np.ndarray:
@@ -101,6 +110,7 @@ def load_template_scene(run: RunDir, device: torch.device) -> TemplateScene:
         run=run,
         device=device,
         name="template",
+        supersample=fit_cfg.supersample,
         field=fitted_field,
         background=background,
         sampler=sampler,

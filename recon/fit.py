@@ -157,10 +157,12 @@ class FitConfig(LoopOptions):
     seed: int = option(0, "random seed (ray batches, jitter, initialisation)", low=0)
     eval_views: int = option(0, "held-out views to render for the metrics (0: all)", low=0)
     eval_chunk: int = option(16384, "rays per chunk when rendering held-out views", low=1)
-    eval_supersample: int = option(
-        1,
-        "rays per pixel side when rendering held-out views (s x s rays box-filtered, as a "
-        "camera pixel integrates light; pairs with --pixel-jitter)",
+    supersample: int = option(
+        2,
+        "rays per pixel side when rendering this template: held-out metrics, `sine render`, "
+        "`sine eval`, snapshots, edits (s x s rays box-filtered, as a camera pixel integrates "
+        "light; s^2 times the render time; 1: one ray through each pixel centre, 4x faster; "
+        "toycar/spot/figurine +0.9/+1.8/+1.1 dB held-out object PSNR at 2)",
         low=1,
     )
 
@@ -473,7 +475,7 @@ def evaluate(
 _RUNTIME_KEYS = RUNTIME_KEYS + (
     "eval_chunk",
     "eval_views",
-    "eval_supersample",
+    "supersample",
     "previews",
 )
 
@@ -644,7 +646,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         cfg.eval_chunk,
         trainer.work_dir / "previews",
         cfg.previews,
-        cfg.eval_supersample,
+        cfg.supersample,
     )
     rays_per_second = trainer.step * cfg.batch_rays / max(trainer.seconds, 1e-9)
     metrics.update(

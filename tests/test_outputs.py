@@ -238,6 +238,14 @@ def test_load_scene_template_and_missing_edit(tiny_fitted_run):
     out = scene.render_view(cam)
     assert set(out) == {"rgb", "opacity", "depth", "z"}
     assert out["rgb"].shape == (16, 16, 3) and out["z"].shape == (16, 16)
+    # supersample 2 (the fit's default): each pixel is the mean of the 2 x 2 pixels of a
+    # twice larger render with one ray per pixel
+    assert scene.supersample == 2  # the template's `sine fit --supersample`
+    smooth = scene.render_view(cam)
+    big = load_scene(tiny_fitted_run, device="cpu", supersample=1).render_view(cam.resized(32, 32))
+    for key in ("rgb", "opacity"):
+        blocks = big[key].reshape(16, 2, 16, 2, -1).mean(axis=(1, 3))
+        np.testing.assert_allclose(smooth[key], blocks.reshape(smooth[key].shape), atol=1e-5)
     with pytest.raises(SineError, match="edit nope not found"):
         load_scene(tiny_fitted_run, edit="nope", device="cpu")
 
@@ -329,6 +337,7 @@ def test_sine_eval_template_against_its_captures(tiny_fitted_run, tmp_path):
     assert sine_cli.main(argv + ["--split", "test", "--quiet", "--device", "cpu"]) == 0
     result = json.loads(out.read_text())
     assert result["mean"]["n_views"] == 1 and result["scene"] == "template"
+    assert result["supersample"] == 2
     view = result["views"][0]
     assert view["name"] == "r_007.png"
     for key in ("psnr", "ssim", "psnr_object", "ssim_object", "psnr_region"):
