@@ -29,6 +29,7 @@ from recon.proxy_mesh import write_mesh
 from recon.rundir import RunDir
 from recon.selfcheck import require_trusted_poses
 from recon.training import RUNTIME_KEYS, LoopOptions, Trainer, loop_options
+from render import volume
 from render.configs import from_json, option, to_dict, to_json, validate
 from render.device import pick_device, torch_threads
 from render.errors import SineError
@@ -108,6 +109,13 @@ class FitConfig(LoopOptions):
     band_width: float = option(0.04, "band half-width d and proxy inflation, in run units", low=0.0)
     uniform_coarse: int = option(64, "stratified coarse samples (uniform sampler)", low=1)
     mask_weight: float = option(0.1, "weight of the opacity-vs-mask BCE loss (0: off)", low=0.0)
+    distortion_weight: float = option(
+        0.0,
+        "weight of mip-NeRF 360's distortion loss, distances in band widths (2 x --band-width): "
+        "pulls each ray's weight into one short stretch, against haze in front of surfaces "
+        "(0: off)",
+        low=0.0,
+    )
     sh_degree: int = option(
         4,
         "spherical-harmonics degree of the view direction fed to the colour (1: colour does "
@@ -592,6 +600,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
             hits=pool.hits[idx],
             perturb=True,
             generator=generator,
+            keep_weights=cfg.distortion_weight > 0,
         )
         ray_errors = ((out["rgb"] - pool.rgb[idx]) ** 2).mean(dim=1)  # [n]
         selector.record(idx, ray_errors)
@@ -600,6 +609,10 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
             acc = out["opacity"].clamp(1e-5, 1 - 1e-5)
             bce = torch.nn.functional.binary_cross_entropy(acc, pool.mask[idx])
             terms["mask"] = cfg.mask_weight * bce
+        if cfg.distortion_weight > 0 and "weights" in out:
+            scale = 2.0 * cfg.band_width  # distances in band widths
+            spread = volume.distortion(out["weights"], out["t"] / scale, out["delta"] / scale)
+            terms["distortion"] = cfg.distortion_weight * spread.mean()
         if background.learnable and len(pool.miss_rgb):
             j = torch.randint(len(pool.miss_rgb), (256,), generator=generator).to(device)
             terms["background"] = torch.mean((background()[None] - pool.miss_rgb[j]) ** 2)
