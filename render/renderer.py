@@ -148,7 +148,8 @@ def render_image(
     "z" [H, W] (camera depth), other channels [H, W, C]} as float32 numpy, without gradients.
 
     `supersample` s > 1: every channel is the mean of s x s rays spread evenly over each pixel
-    (a box filter, as a camera pixel integrates light; s^2 times the rays)."""
+    (a box filter, as a camera pixel integrates light; s^2 times the rays); the depths are
+    weighted by the rays' opacities (the depth of what the pixel sees)."""
     device = device or torch.device("cpu")
     s = int(supersample)
     if s < 1:
@@ -160,11 +161,16 @@ def render_image(
     d = torch.from_numpy(d).to(device)
     res = render_rays_chunked(field_query, o, d, sampler, background, chunk)
     res["z"] = res["depth"] * torch.from_numpy(fine.z_per_unit_distance()).to(res["depth"])
+    depths = ("depth", "z") if s > 1 else ()
+    for k in depths:
+        res[k] = res[k] * res["opacity"]  # divided by the pixel's mean opacity below
     out = {}
     for k, v in res.items():
         if k in ("samples", "hit"):
             continue
         v = v.detach().float().cpu().numpy().reshape(h, s, w, s, -1).mean(axis=(1, 3))
         out[k] = v if res[k].ndim == 2 else v[..., 0]
+    for k in depths:
+        out[k] = np.where(out["opacity"] > 0, out[k] / np.maximum(out["opacity"], 1e-6), 0.0)
     out["samples_per_pixel"] = np.float32(int(res["samples"]) / (h * w))
     return out

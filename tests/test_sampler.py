@@ -212,3 +212,7 @@ def test_render_image_supersample_integrates_each_pixel():
     assert abs(five["opacity"].sum() - area) < abs(one["opacity"].sum() - area)
     np.testing.assert_allclose(five["rgb"][6, 8], [1.0, 0.0, 0.0], atol=1e-3)
     np.testing.assert_allclose(five["rgb"][:, :, 1], 1.0 - five["opacity"], atol=1e-3)
+    # depth is that of what a pixel sees: an edge pixel stays on the sphere (z in [2.5, 3])
+    edge = (five["opacity"] > 0.05) & (five["opacity"] < 0.95)
+    assert np.all((five["z"][edge] > 2.5 - 1e-3) & (five["z"][edge] < 3.0 + 1e-3))
+    assert np.all(five["z"][five["opacity"] == 0] == 0)
