@@ -360,6 +360,7 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
         force=force,
         progress=progress,
         advice="lower learning rates (e.g. half of --lr-grid and --lr-mlp)",
+        defaults=to_dict(FeaturesConfig()),
     )
     done = trainer.finished()  # before the template, the views and DINO are loaded
     if done is not None:

@@ -493,6 +493,7 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
         force=force,
         progress=progress,
         advice="a lower --lr-deform (or --lr-naive)",
+        defaults=to_dict(GeometryEditConfig()),
     )
     done = trainer.finished()
     if done is not None:

@@ -393,6 +393,7 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
         progress=progress,
         manual_backward=cfg.method == "ours",
         advice="lower learning rates (--lr-grid, --lr-compositor, --lr-naive)",
+        defaults=to_dict(TextureEditConfig()),
     )
     done = trainer.finished()
     if done is not None:

@@ -522,6 +522,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         force=force,
         progress=progress,
         advice="lower learning rates (e.g. half of --lr-grid and --lr-mlp)",
+        defaults=to_dict(FitConfig()),
     )
     done = trainer.finished()  # before any data is loaded: a finished fit costs nothing
     if done is not None:

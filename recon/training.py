@@ -202,7 +202,9 @@ class Trainer:
     directory: the stage's results folder; name: the stage as the user knows it (messages, the
     progress bar); config: the stage's resolved options (to_dict(cfg)); runtime_keys: options
     that do not change the result (device, threads, ...). `advice`: what to change when the loss
-    diverges (resuming as is would repeat the same steps).
+    diverges (resuming as is would repeat the same steps). `defaults`: the options' default
+    values: an option added after a run was recorded counts, for that run, as its default (a
+    new option left at its default does not retrain finished runs).
     """
 
     def __init__(
@@ -221,6 +223,7 @@ class Trainer:
         progress: bool = True,
         manual_backward: bool = False,
         advice: str = "lower learning rates",
+        defaults: dict | None = None,
     ):
         self.directory = Path(directory)
         self.work_dir = self.directory.with_name(self.directory.name + ".partial")
@@ -228,6 +231,7 @@ class Trainer:
         self.iterations, self.seed, self.log_every = iterations, seed, log_every
         self.checkpoint_every, self.checkpoint_seconds = checkpoint_every, checkpoint_seconds
         self.force, self.progress, self.manual_backward = force, progress, manual_backward
+        self.defaults = dict(defaults or {})
         self.advice = advice
         self.step, self.seconds, self.log = 0, 0.0, []
         self.optimizer = self.scheduler = self.generator = None
@@ -255,7 +259,7 @@ class Trainer:
                 )
             self._prepare_work_dir()
             return None
-        changes = changed_options(done["config"], self.config, self.runtime_keys)
+        changes = self._changes(done["config"])
         if not changes and done["step"] >= self.iterations:
             return {**read_json(metrics), "skipped": True}
         self._say(
@@ -265,12 +269,16 @@ class Trainer:
         self._prepare_work_dir()
         return None
 
+    def _changes(self, recorded: dict) -> list[str]:
+        """The options that differ from a recorded run's (see `defaults`)."""
+        return changed_options({**self.defaults, **recorded}, self.config, self.runtime_keys)
+
     def _prepare_work_dir(self) -> None:
         """Keeps work_dir when its checkpoint resumes with these options, else empties it."""
         header = None if self.force else read_checkpoint_header(self.checkpoint_path)
         self._resumable = False
         if header is not None:
-            changes = changed_options(header["config"], self.config, self.runtime_keys)
+            changes = self._changes(header["config"])
             if not changes:
                 self._resumable = True
                 return

@@ -137,6 +137,13 @@ def test_finished_run_is_skipped_and_changed_options_train_again(tmp_path, capsy
     assert forced.trainer.step == 0
     forced.trainer.run(forced.step, stop_at=3)
     assert read_json(tmp_path / "toy" / "metrics.json") == {"score": 1.0}
+    # an option added after the run was recorded: at its default the run stays finished
+    newer = {**CONFIG, "extra": 0.0}
+    assert Toy(tmp_path, newer, defaults={"extra": 0.0}).trainer.finished() is not None
+    assert (
+        Toy(tmp_path, {**newer, "extra": 0.5}, defaults={"extra": 0.0}).trainer.finished() is None
+    )
+    assert Toy(tmp_path, newer).trainer.finished() is None  # no defaults given: a change
     assert changed_options({"a": 1, "d": 0}, {"a": 2, "d": 1, "b": 3}, ("d",)) == [
         "a: 1 -> 2",
         "b: (unset) -> 3",
