@@ -167,6 +167,13 @@ def _settings(view, targets, reference, mask, regions, gcfg, tcfg) -> dict:
         "texture_region_sha256": texture["region_sha256"],
         "reference": None if reference is None else str(reference),
         "reference_sha256": None if reference is None else file_sha256(reference),
+        **_options(gcfg, tcfg),
+    }
+
+
+def _options(gcfg, tcfg) -> dict:
+    """Both phases' options as one flat dict ("geometry.KEY", "texture.KEY")."""
+    return {
         **{f"geometry.{k}": v for k, v in to_dict(gcfg).items()},
         **{f"texture.{k}": v for k, v in to_dict(tcfg).items()},
     }
@@ -191,6 +198,7 @@ def _edit(
         progress=progress,
         manual_backward=True,
         advice="lower learning rates (--lr-deform, --lr-grid, --lr-compositor)",
+        defaults=_options(GeometryEditConfig(), TextureEditConfig()),
     )
     done = trainer.finished()
     if done is not None:

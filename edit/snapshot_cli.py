@@ -88,18 +88,13 @@ def render_view(run, camera, cfg: ViewSourceConfig) -> tuple[np.ndarray, np.ndar
     """The template's rendering of `camera` -> (rgb [H, W, 3], opacity [H, W], background [3])."""
     import torch
 
-    from recon.fit import load_fitted, make_sampler
+    from edit.template_scene import load_template_scene
     from render.device import pick_device, torch_threads
-    from render.renderer import render_image
 
-    device = pick_device(cfg.device)
     with torch_threads(cfg.threads), torch.no_grad():
-        field, background, fit_cfg = load_fitted(run.root, device)
-        sampler = make_sampler(fit_cfg, run)
-        out = render_image(
-            camera, field, sampler, background, cfg.chunk, device, fit_cfg.supersample
-        )
-        bg = background().detach().float().cpu().numpy().reshape(3)
+        template = load_template_scene(run, pick_device(cfg.device))
+        out = template.render_view(camera, cfg.chunk)
+        bg = template.background().detach().float().cpu().numpy().reshape(3)
     rgb = np.clip(out["rgb"], 0.0, 1.0).astype(np.float32)
     return rgb, np.clip(out["opacity"], 0.0, 1.0).astype(np.float32), bg
 
