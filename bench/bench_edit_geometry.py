@@ -11,8 +11,12 @@ silhouette). Scored on held-out edited views (every 4th view around the ring, th
 excluded) against the ground truth:
 - heldout_psnr: on object pixels (GT mask or rendered opacity > 0.5); heldout_psnr_image: whole image;
 - heldout_ssim (whole image), heldout_silhouette_iou (opacity > 0.5 vs GT mask);
-- unedited_psnr: the edit vs the template's own rendering where the GT edit did not change the
-  view (GT original and edited images agree, on the object): does the rest stay intact?
+- unedited_psnr: the edit vs the template's own rendering outside the edited part: object pixels
+  whose visible surface lies below the edit's plane in both the GT original and the GT edit
+  (from the synth's depth maps) and whose GT colour did not change: does the rest stay intact?
+  unedited_psnr_pixels: the first sessions' definition, every object pixel whose GT colour and
+  mask did not change, which also counts pixels *inside* the edited part whose colour happens
+  to match before and after (a stretched window over the old window).
 `--methods ... symmetric` adds ours with the mirrored prior (`--symmetric`); `template` scores the
 unedited template against the edited ground truth (the reference every edit should beat).
 Writes DIR/results.json ({"cases": [...]}) and DIR/<object>_sheet.png (rows: held-out views;
@@ -92,6 +96,26 @@ def pick_edit_view(run, syn: Path) -> int:
     return best_k
 
 
+def edited_part(syn: Path, name: str) -> np.ndarray:
+    """[H, W] bool: pixels of view `name` whose visible surface belongs to the edited part (lies
+    above the GT edit's plane) in the GT original or in the GT edit (synth depth, synth units)."""
+    from edit.shape_prior import back_project
+    from recon.rundir import RunDir
+    from render.io import read_depth, read_json
+
+    plane = np.asarray(read_json(syn / "edits" / "geometric" / "edit.json")["plane"])
+    cams = {c.name: c for c in RunDir(syn).load_cameras().frames}
+    cam = cams[name]
+    v, u = np.mgrid[0 : cam.height, 0 : cam.width]
+    pixels = np.stack([u.ravel() + 0.5, v.ravel() + 0.5], axis=1)  # [H*W, 2] pixel centres
+    inside = np.zeros(cam.height * cam.width, bool)
+    for depth_dir in (syn / "depth", syn / "edits" / "geometric" / "depth"):
+        z = read_depth(depth_dir / f"{Path(name).stem}.npy").ravel()  # [H*W] camera z, 0: none
+        points = back_project(cam, pixels, z)
+        inside |= (z > 0) & (points @ plane[:3] > plane[3])  # above the plane: stretched
+    return inside.reshape(cam.height, cam.width)
+
+
 def score(run, syn: Path, scene, template, views: list[int]) -> tuple[dict, list]:
     from skimage.metrics import structural_similarity
 
@@ -100,6 +124,7 @@ def score(run, syn: Path, scene, template, views: list[int]) -> tuple[dict, list
 
     frames = run.load_cameras().frames
     rows, per = [], {"psnr": [], "psnr_image": [], "ssim": [], "iou": [], "unedited": []}
+    per["pixels"] = []
     for k in views:
         cam = frames[k]
         gt = read_image(syn / "edits" / "geometric" / "images" / cam.name)
@@ -112,12 +137,15 @@ def score(run, syn: Path, scene, template, views: list[int]) -> tuple[dict, list
         sil = out["opacity"] > 0.5
         obj = gt_mask | sil
         unchanged = (gt_mask == orig_mask) & orig_mask & (np.abs(gt - orig).max(-1) < 0.02)
+        outside = unchanged & ~edited_part(syn, cam.name)
         per["psnr"].append(psnr(pred[obj], gt[obj]))
         per["psnr_image"].append(psnr(pred, gt))
         per["ssim"].append(float(structural_similarity(gt, pred, channel_axis=2, data_range=1.0)))
         per["iou"].append(float((sil & gt_mask).sum() / max((sil | gt_mask).sum(), 1)))
+        if outside.any():
+            per["unedited"].append(psnr(pred[outside], tmpl[outside]))
         if unchanged.any():
-            per["unedited"].append(psnr(pred[unchanged], tmpl[unchanged]))
+            per["pixels"].append(psnr(pred[unchanged], tmpl[unchanged]))
         rows.append((tmpl, pred, gt))
     metrics = {
         "heldout_psnr": float(np.mean(per["psnr"])),
@@ -125,6 +153,7 @@ def score(run, syn: Path, scene, template, views: list[int]) -> tuple[dict, list
         "heldout_ssim": float(np.mean(per["ssim"])),
         "heldout_silhouette_iou": float(np.mean(per["iou"])),
         "unedited_psnr": float(np.mean(per["unedited"])) if per["unedited"] else None,
+        "unedited_psnr_pixels": float(np.mean(per["pixels"])) if per["pixels"] else None,
         "heldout_views": len(views),
     }
     return metrics, rows

@@ -141,6 +141,28 @@ class FitConfig(LoopOptions):
     refine_views: int = option(
         16, "training views rendered for the proxy refinement (evenly spaced; 0: all)", low=0
     )
+    train_supersample: int = option(
+        1,
+        "train on the box filter of s x s rays per pixel (the mean of the sub-pixel rays' "
+        "colours against the pixel, the way a camera integrates a pixel); --batch-rays counts "
+        "the rays, so a batch holds fewer pixels",
+        low=1,
+        high=4,
+    )
+    supersample_pixels: str = option(
+        "all",
+        "which training pixels get the s x s box filter: all, or error (only the part of each "
+        "batch drawn by error: silhouettes and fine texture, where a pixel's content varies; "
+        "the uniform part keeps one ray per pixel)",
+        choices=["all", "error"],
+    )
+    supersample_from: float = option(
+        0.0,
+        "fraction of the steps after which --train-supersample applies (before it: one ray "
+        "through each pixel's centre, more pixels per batch to learn fine texture from)",
+        low=0.0,
+        high=1.0,
+    )
     pixel_jitter: bool = option(
         False,
         "train on rays through random points of their pixels instead of the centres (a pixel "
@@ -261,6 +283,22 @@ def jitter_in_pixels(dirs: torch.Tensor, axes: torch.Tensor, generator) -> torch
     shift = torch.rand(len(dirs), 2, generator=generator).to(dirs) - 0.5  # [n, 2] pixels
     moved = on_plane + shift[:, :1] * axes[:, 0] + shift[:, 1:] * axes[:, 1]
     return moved / moved.norm(dim=-1, keepdim=True)
+
+
+def subpixel_dirs(dirs: torch.Tensor, axes: torch.Tensor, s: int) -> torch.Tensor:
+    """Unit directions through pixel centres [n, 3] -> through the centres of each pixel's
+    s x s sub-pixels [n * s * s, 3] (pixel by pixel; the box filter of `render_image`'s
+    supersample); axes [n, 3, 3] from `pixel_axes`."""
+    on_plane = dirs / (dirs * axes[:, 2]).sum(-1, keepdim=True)  # [n, 3] at camera z = 1
+    offsets = (torch.arange(s, dtype=dirs.dtype, device=dirs.device) + 0.5) / s - 0.5  # [s]
+    du, dv = offsets.repeat(s), offsets.repeat_interleave(s)  # [s*s] u fastest, as in images
+    moved = (
+        on_plane[:, None]
+        + du[None, :, None] * axes[:, None, 0]
+        + dv[None, :, None] * axes[:, None, 1]
+    )  # [n, s*s, 3]
+    moved = moved / moved.norm(dim=-1, keepdim=True)
+    return moved.reshape(-1, 3)
 
 
 class RaySelector:
@@ -576,33 +614,54 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     generator = trainer.generator
     selector = RaySelector(pool, cfg.error_sampling, generator)
 
-    def step(_: int) -> dict[str, torch.Tensor]:
-        idx = selector.draw(cfg.batch_rays)
+    sub = cfg.train_supersample**2  # rays per box-filtered training pixel
+    box_from = round(cfg.supersample_from * cfg.iterations) if sub > 1 else cfg.iterations + 1
+    box_part = cfg.error_sampling if cfg.supersample_pixels == "error" else 1.0
+
+    def step(i: int) -> dict[str, torch.Tensor]:
+        boxed_fraction = box_part if i >= box_from else 0.0
+        n_pixels = max(1, round(cfg.batch_rays / (1 - boxed_fraction + boxed_fraction * sub)))
+        idx = selector.draw(n_pixels)  # uniform pixels first, then those drawn by error
+        n_boxed = round(len(idx) * boxed_fraction)
+        n_single = len(idx) - n_boxed
+        dirs = pool.dirs[idx]  # [n, 3]
+        if cfg.pixel_jitter:  # the band of the centre ray holds: a pixel is << the band
+            dirs = jitter_in_pixels(dirs, pool.pixel_axes[pool.view[idx]], generator)
+        rays = idx  # [r] the pool ray (pixel) of each ray rendered
+        if n_boxed:  # the sub-pixel rays share their pixel's band, like jittered ones
+            boxed = idx[n_single:]
+            sub_dirs = subpixel_dirs(
+                dirs[n_single:], pool.pixel_axes[pool.view[boxed]], cfg.train_supersample
+            )
+            dirs = torch.cat([dirs[:n_single], sub_dirs])
+            rays = torch.cat([idx[:n_single], boxed.repeat_interleave(sub)])
         query = field
         if cfg.appearance_dim:  # every pool ray hits: samples come ray by ray, in order
-            ray_codes = codes[pool.view[idx]]  # [n, A]
+            ray_codes = codes[pool.view[rays]]  # [r, A]
 
             def query(x, d):
                 return field(x, d, ray_codes.repeat_interleave(len(x) // len(ray_codes), 0))
 
-        dirs = pool.dirs[idx]  # [n, 3]
-        if cfg.pixel_jitter:  # the band of the centre ray holds: a pixel is << the band
-            dirs = jitter_in_pixels(dirs, pool.pixel_axes[pool.view[idx]], generator)
         behind = background
-        if behind_capture:  # [n, 3]: outside the masks, the captured pixel itself
-            outside = pool.mask[idx, None] < 0.5
-            behind = torch.where(outside, pool.rgb[idx], background()[None].expand(len(idx), 3))
+        if behind_capture:  # [r, 3]: outside the masks, the captured pixel itself
+            outside = pool.mask[rays, None] < 0.5
+            behind = torch.where(outside, pool.rgb[rays], background()[None].expand(len(rays), 3))
         out = render_rays(
             query,
-            pool.origins[idx],
+            pool.origins[rays],
             dirs,
             sampler,
             behind,
-            hits=pool.hits[idx],
+            hits=pool.hits[rays],
             perturb=True,
             generator=generator,
             keep_weights=cfg.distortion_weight > 0,
         )
+        if n_boxed:  # the box filter of each boxed pixel's rays
+            for key in ("rgb", "opacity"):
+                value = out[key]
+                means = value[n_single:].reshape(n_boxed, sub, *value.shape[1:]).mean(1)
+                out[key] = torch.cat([value[:n_single], means])
         ray_errors = ((out["rgb"] - pool.rgb[idx]) ** 2).mean(dim=1)  # [n]
         selector.record(idx, ray_errors)
         terms = {"rgb": ray_errors.mean()}
