@@ -50,6 +50,9 @@ VARIANTS = {
     "symmetric": {"symmetric": True},
     "band_005": {"band_width": 0.05},  # the old default band; now: the template fit's band
     "w_reg_1": {"w_reg": 1.0},  # the paper's weight (the default is 3)
+    "gp_constant": {"gp_fade": 0.0},  # the paper's constant L_gp weight
+    "gp_003": {"w_gp": 0.003},  # L_gp ten times weaker
+    "gp_chamfer": {"prior_match": "chamfer"},  # the paper's two-way Chamfer, not vertex pairs
 }
 
 
