@@ -52,6 +52,7 @@ VARIANTS = {
     "w_reg_1": {"w_reg": 1.0},  # the paper's weight (the default is 3)
     "gp_constant": {"gp_fade": 0.0},  # the paper's constant L_gp weight
     "gp_003": {"w_gp": 0.003},  # L_gp ten times weaker
+    "gp_fade_025": {"gp_fade": 0.25},  # L_gp gone after the first quarter of the steps
     "gp_chamfer": {"prior_match": "chamfer"},  # the paper's two-way Chamfer, not vertex pairs
 }
 
