@@ -100,22 +100,17 @@ def pick_edit_view(run, syn: Path) -> int:
     return best_k
 
 
-def edited_part(syn: Path, name: str) -> np.ndarray:
-    """[H, W] bool: pixels of view `name` whose visible surface belongs to the edited part (lies
-    above the GT edit's plane) in the GT original or in the GT edit (synth depth, synth units)."""
+def edited_part(syn: Path, cam, plane: np.ndarray) -> np.ndarray:
+    """[H, W] bool: pixels of the synth camera `cam` whose visible surface belongs to the edited
+    part (lies above the GT edit's `plane` [4]) in the GT original or in the GT edit (synth
+    depth, synth units)."""
     from edit.shape_prior import back_project
-    from recon.rundir import RunDir
-    from render.io import read_depth, read_json
+    from render.io import read_depth
 
-    plane = np.asarray(read_json(syn / "edits" / "geometric" / "edit.json")["plane"])
-    cams = {c.name: c for c in RunDir(syn).load_cameras().frames}
-    cam = cams[name]
-    v, u = np.mgrid[0 : cam.height, 0 : cam.width]
-    pixels = np.stack([u.ravel() + 0.5, v.ravel() + 0.5], axis=1)  # [H*W, 2] pixel centres
     inside = np.zeros(cam.height * cam.width, bool)
     for depth_dir in (syn / "depth", syn / "edits" / "geometric" / "depth"):
-        z = read_depth(depth_dir / f"{Path(name).stem}.npy").ravel()  # [H*W] camera z, 0: none
-        points = back_project(cam, pixels, z)
+        z = read_depth(depth_dir / f"{Path(cam.name).stem}.npy").ravel()  # [H*W] camera z, 0: none
+        points = back_project(cam, cam.pixel_grid(), z)
         inside |= (z > 0) & (points @ plane[:3] > plane[3])  # above the plane: stretched
     return inside.reshape(cam.height, cam.width)
 
@@ -123,12 +118,15 @@ def edited_part(syn: Path, name: str) -> np.ndarray:
 def score(run, syn: Path, scene, template, views: list[int]) -> tuple[dict, list]:
     from skimage.metrics import structural_similarity
 
-    from render.io import read_image, read_mask
+    from recon.rundir import RunDir
+    from render.io import read_image, read_json, read_mask
     from render.metrics import psnr
 
     frames = run.load_cameras().frames
-    rows, per = [], {"psnr": [], "psnr_image": [], "ssim": [], "iou": [], "unedited": []}
-    per["pixels"] = []
+    synth_cams = {c.name: c for c in RunDir(syn).load_cameras().frames}  # synth units
+    plane = np.asarray(read_json(syn / "edits" / "geometric" / "edit.json")["plane"])
+    keys = ("psnr", "psnr_image", "ssim", "iou", "unedited", "pixels")
+    rows, per = [], {key: [] for key in keys}
     for k in views:
         cam = frames[k]
         gt = read_image(syn / "edits" / "geometric" / "images" / cam.name)
@@ -141,7 +139,7 @@ def score(run, syn: Path, scene, template, views: list[int]) -> tuple[dict, list
         sil = out["opacity"] > 0.5
         obj = gt_mask | sil
         unchanged = (gt_mask == orig_mask) & orig_mask & (np.abs(gt - orig).max(-1) < 0.02)
-        outside = unchanged & ~edited_part(syn, cam.name)
+        outside = unchanged & ~edited_part(syn, synth_cams[cam.name], plane)
         per["psnr"].append(psnr(pred[obj], gt[obj]))
         per["psnr_image"].append(psnr(pred, gt))
         per["ssim"].append(float(structural_similarity(gt, pred, channel_axis=2, data_range=1.0)))
