@@ -144,6 +144,14 @@ class GeometryEditConfig(LoopOptions):
         0.02, "depth tolerance (run units) of visible proxy vertices", low=0
     )
     arap_iterations: int = option(50, "ARAP iterations of the shape prior", low=1)
+    lift_plane: str = option(
+        "upright",
+        "the plane a handle's image motion is lifted into: 'upright' (through the vertex, facing "
+        "the camera, containing the scene's up axis: vertical image motion becomes vertical "
+        "motion, as a photo of an upright object is read) or 'image' (parallel to the image: "
+        "the vertex keeps its camera depth)",
+        choices=["upright", "image"],
+    )
     gate: bool = option(
         True,
         "restrict the editing field to near what the shape prior moved (beyond the paper: the "
@@ -219,6 +227,7 @@ def prepare(
             cfg.visibility_tol,
             cfg.symmetric,
             cfg.arap_iterations,
+            up=run.load_cameras().up if cfg.lift_plane == "upright" else None,
         )
         save_prior(out, prior, run)
     write_image(out / "target.png", tgt.rgb)

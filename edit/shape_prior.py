@@ -8,9 +8,11 @@ From the template's rendering of the edited view and the user's target we build 
    background; the contour is not).
 2. **Lifting to 3D**: the proxy vertices visible in the edited view (projected depth agrees with
    the ray-cast depth of the proxy) and inside the editable region become handles: the vertex
-   keeps its camera depth and moves to the back-projection of its corresponded pixel. Vertices
-   that project outside the region are anchored where they are (hidden ones too); hidden ones
-   behind the region are free, so the far side of the edited part follows.
+   moves to where the ray of its corresponded pixel crosses the upright plane through it (facing
+   the camera, containing the scene's up axis: an image-vertical drag lifts to a vertical move,
+   as a photo of an upright object is read), or, without an up axis, it keeps its camera depth.
+   Vertices that project outside the region are anchored where they are (hidden ones too);
+   hidden ones behind the region are free, so the far side of the edited part follows.
 3. **ARAP**: Open3D `deform_as_rigid_as_possible` deforms the proxy so that handles reach their
    targets and anchors stay; the hidden side follows rigidly.
 4. `symmetric=True`: the proxy's mirror plane (best of candidate planes through the centroid) is
@@ -125,6 +127,31 @@ def visible_vertices(
     return visible, uv, z
 
 
+def lifting_normals(camera: Camera, points: np.ndarray, up: np.ndarray | None) -> np.ndarray:
+    """[N, 3] normals of the planes handles move in: the camera's optical axis (the image plane:
+    the vertex keeps its depth) or, with the scene's `up` [3], that axis made horizontal (the
+    upright plane facing the camera), so image-vertical motion lifts to vertical motion. A camera
+    looking more than 60 degrees down or up falls back to the image plane."""
+    axis = camera.camera_to_world[:3, 2]
+    normal = axis
+    if up is not None:
+        up = np.asarray(up, np.float64) / np.linalg.norm(up)
+        level = axis - (axis @ up) * up
+        if np.linalg.norm(level) > np.cos(np.radians(60.0)):
+            normal = level / np.linalg.norm(level)
+    return np.broadcast_to(normal, (len(points), 3))
+
+
+def lift_to_planes(
+    camera: Camera, pixels: np.ndarray, points: np.ndarray, normals: np.ndarray
+) -> np.ndarray:
+    """World points [N, 3] where the rays of `pixels` [N, 2] cross the planes through `points`
+    [N, 3] with `normals` [N, 3]."""
+    directions = back_project(camera, pixels, np.ones(len(pixels))) - camera.center
+    t = ((points - camera.center) * normals).sum(1) / (directions * normals).sum(1)
+    return camera.center + t[:, None] * directions
+
+
 def back_project(camera: Camera, pixels: np.ndarray, z: np.ndarray) -> np.ndarray:
     """Pixel positions [N, 2] at camera depths z [N] -> world points [N, 3]."""
     x = (pixels[:, 0] - camera.cx) / camera.fx * z
@@ -152,11 +179,13 @@ def lift_handles(
     visibility_tol: float,
     contour_px: float = 3.0,
     min_motion_px: float = 1.0,
+    up: np.ndarray | None = None,
 ) -> Handles:
     """Handles and anchors from the correspondences of view `camera` (see the module doc).
 
     Visible vertices inside `region` [H, W] bool whose corresponded pixel moved by more than
-    `min_motion_px` follow it at their depth (handles). Every other vertex whose projection falls
+    `min_motion_px` follow it (handles) in the upright plane through them when the scene's `up`
+    [3] is given, else at their camera depth (`lifting_normals`). Every other vertex whose projection falls
     outside the region is an anchor, hidden or not: the region's prism along the view is the only
     space the edit may change, and a hidden side left free would swing about the visible one. The
     rest (hidden behind the region, or visible in it with sub-pixel motion: flow noise) is free
@@ -181,7 +210,9 @@ def lift_handles(
     still = ids[~moves]
     ids, dst = ids[lands & moves], dst[lands & moves]
     anchors = np.concatenate([np.nonzero(~in_region)[0], still])
-    return Handles(ids, back_project(camera, dst, z[ids]), np.unique(anchors))
+    normals = lifting_normals(camera, vertices[ids], up)
+    targets = lift_to_planes(camera, dst, vertices[ids], normals)
+    return Handles(ids, targets, np.unique(anchors))
 
 
 # ---- symmetry -----------------------------------------------------------------------------
@@ -275,8 +306,10 @@ def build_prior_mesh(
     visibility_tol: float = 0.02,
     symmetric: bool = False,
     iterations: int = 50,
+    up: np.ndarray | None = None,
 ) -> PriorMesh:
-    """The whole prior: correspondences -> handles -> (mirror) -> ARAP (see the module doc)."""
+    """The whole prior: correspondences -> handles -> (mirror) -> ARAP (see the module doc).
+    `up` [3]: the scene's up axis for the upright lifting (None: handles keep their depth)."""
     flow = dense_flow(template_rgb, template_alpha, target_rgb, target_alpha)
     handles = lift_handles(
         camera,
@@ -287,6 +320,7 @@ def build_prior_mesh(
         template_alpha,
         target_alpha,
         visibility_tol,
+        up=up,
     )
     if len(handles.ids) == 0:
         raise SineError(

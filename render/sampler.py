@@ -87,17 +87,22 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 
 class ProxyRaycaster:
-    """Ray casting against a proxy mesh and its copy inflated by `inflate` (run units)."""
+    """Ray casting against a proxy mesh and its copy inflated by `inflate` (run units).
+
+    The bounding sphere has radius `radius`, grown to hold the inflated proxy when the proxy
+    reaches beyond it (an edit that makes the object taller than the unit sphere)."""
 
     def __init__(self, mesh, inflate: float = 0.04, radius: float = 1.0):
         self.inflate = float(inflate)
-        self.radius = float(radius)
+        self.min_radius = float(radius)
         vertices, self.triangles = mesh_arrays(mesh)
         self.update_vertices(vertices)
 
     def update_vertices(self, vertices: np.ndarray) -> None:
         """Rebuilds both scenes from (warped) vertices [V, 3] with the same triangles."""
         self.vertices = np.ascontiguousarray(vertices, np.float32)
+        reach = float(np.linalg.norm(self.vertices, axis=1).max(initial=0.0)) + 2 * self.inflate
+        self.radius = max(self.min_radius, reach)
         self._scene = MeshRaycaster((self.vertices, self.triangles))
         self._inflated = None
         if self.inflate > 0:

@@ -26,6 +26,8 @@ from edit.shape_prior import (
     arap_deform,
     back_project,
     lift_handles,
+    lift_to_planes,
+    lifting_normals,
     mirror_handles,
     mirror_plane,
 )
@@ -226,6 +228,30 @@ def test_lift_handles_back_projects_the_flow_at_the_vertex_depth():
     )
     assert len(small.ids) == 0
     np.testing.assert_array_equal(small.anchor_ids, np.union1d(np.nonzero(~in_region)[0], expected))
+
+
+def test_upright_lifting_turns_image_vertical_motion_into_vertical_motion():
+    # a camera 30 degrees above the horizon looking at the origin; a point on the image's centre
+    # column dragged 6 px up in the image: the upright plane (facing the camera, containing z)
+    # lifts it straight up in the world, the image plane keeps its camera depth (tilted motion)
+    eye = np.array([3.0 * math.cos(math.radians(30)), 0.0, 3.0 * math.sin(math.radians(30))])
+    cam = Camera(64, 64, 64.0, 64.0, 32.0, 32.0, look_at(eye, [0, 0, 0]))
+    point = np.array([[0.0, 0.0, 0.2]])
+    uv, z = cam.project(point)
+    assert uv[0, 0] == pytest.approx(32.0)  # on the centre column
+    dst = uv + np.array([[0.0, -6.0]])
+    up = np.array([0.0, 0.0, 1.0])
+    upright = lift_to_planes(cam, dst, point, lifting_normals(cam, point, up))
+    move = upright[0] - point[0]
+    assert move[2] > 0 and np.abs(move[:2]).max() < 1e-9  # straight up
+    image = lift_to_planes(cam, dst, point, lifting_normals(cam, point, None))
+    np.testing.assert_allclose(cam.project(image)[1], z, atol=1e-9)  # same camera depth
+    assert image[0, 0] < -0.01  # ... so it also moves away from the camera
+    for lifted in (upright, image):
+        np.testing.assert_allclose(cam.project(lifted)[0], dst, atol=1e-9)
+    # a camera looking straight down has no upright plane: the image plane is used
+    top = Camera(64, 64, 64.0, 64.0, 32.0, 32.0, look_at([0, 0, 3.0], [0, 0, 0], up=(0, 1, 0)))
+    np.testing.assert_allclose(lifting_normals(top, point, up), lifting_normals(top, point, None))
 
 
 def test_back_project_inverts_project():
