@@ -127,11 +127,11 @@ def visible_vertices(
     return visible, uv, z
 
 
-def lifting_normals(camera: Camera, points: np.ndarray, up: np.ndarray | None) -> np.ndarray:
-    """[N, 3] normals of the planes handles move in: the camera's optical axis (the image plane:
-    the vertex keeps its depth) or, with the scene's `up` [3], that axis made horizontal (the
-    upright plane facing the camera), so image-vertical motion lifts to vertical motion. A camera
-    looking more than 60 degrees down or up falls back to the image plane."""
+def lifting_normal(camera: Camera, up: np.ndarray | None) -> np.ndarray:
+    """[3] normal of the planes handles move in: the camera's optical axis (the image plane: the
+    vertex keeps its depth) or, with the scene's `up` [3], that axis made horizontal (the upright
+    plane facing the camera), so image-vertical motion lifts to vertical motion. A camera looking
+    more than 60 degrees down or up falls back to the image plane."""
     axis = camera.camera_to_world[:3, 2]
     normal = axis
     if up is not None:
@@ -139,16 +139,16 @@ def lifting_normals(camera: Camera, points: np.ndarray, up: np.ndarray | None) -
         level = axis - (axis @ up) * up
         if np.linalg.norm(level) > np.cos(np.radians(60.0)):
             normal = level / np.linalg.norm(level)
-    return np.broadcast_to(normal, (len(points), 3))
+    return normal
 
 
 def lift_to_planes(
-    camera: Camera, pixels: np.ndarray, points: np.ndarray, normals: np.ndarray
+    camera: Camera, pixels: np.ndarray, points: np.ndarray, normal: np.ndarray
 ) -> np.ndarray:
     """World points [N, 3] where the rays of `pixels` [N, 2] cross the planes through `points`
-    [N, 3] with `normals` [N, 3]."""
+    [N, 3] with `normal` [3]."""
     directions = back_project(camera, pixels, np.ones(len(pixels))) - camera.center
-    t = ((points - camera.center) * normals).sum(1) / (directions * normals).sum(1)
+    t = ((points - camera.center) @ normal) / (directions @ normal)
     return camera.center + t[:, None] * directions
 
 
@@ -185,11 +185,11 @@ def lift_handles(
 
     Visible vertices inside `region` [H, W] bool whose corresponded pixel moved by more than
     `min_motion_px` follow it (handles) in the upright plane through them when the scene's `up`
-    [3] is given, else at their camera depth (`lifting_normals`). Every other vertex whose projection falls
-    outside the region is an anchor, hidden or not: the region's prism along the view is the only
-    space the edit may change, and a hidden side left free would swing about the visible one. The
-    rest (hidden behind the region, or visible in it with sub-pixel motion: flow noise) is free
-    or anchored respectively.
+    [3] is given, else at their camera depth (`lifting_normal`). Every other vertex whose
+    projection falls outside the region is an anchor, hidden or not: the region's prism along the
+    view is the only space the edit may change, and a hidden side left free would swing about the
+    visible one. The rest (hidden behind the region, or visible in it with sub-pixel motion: flow
+    noise) is free or anchored respectively.
     """
     visible, uv, z = visible_vertices(camera, vertices, proxy_depth, visibility_tol)
     h, w = region.shape
@@ -210,8 +210,7 @@ def lift_handles(
     still = ids[~moves]
     ids, dst = ids[lands & moves], dst[lands & moves]
     anchors = np.concatenate([np.nonzero(~in_region)[0], still])
-    normals = lifting_normals(camera, vertices[ids], up)
-    targets = lift_to_planes(camera, dst, vertices[ids], normals)
+    targets = lift_to_planes(camera, dst, vertices[ids], lifting_normal(camera, up))
     return Handles(ids, targets, np.unique(anchors))
 
 

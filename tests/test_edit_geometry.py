@@ -27,7 +27,7 @@ from edit.shape_prior import (
     back_project,
     lift_handles,
     lift_to_planes,
-    lifting_normals,
+    lifting_normal,
     mirror_handles,
     mirror_plane,
 )
@@ -241,17 +241,17 @@ def test_upright_lifting_turns_image_vertical_motion_into_vertical_motion():
     assert uv[0, 0] == pytest.approx(32.0)  # on the centre column
     dst = uv + np.array([[0.0, -6.0]])
     up = np.array([0.0, 0.0, 1.0])
-    upright = lift_to_planes(cam, dst, point, lifting_normals(cam, point, up))
+    upright = lift_to_planes(cam, dst, point, lifting_normal(cam, up))
     move = upright[0] - point[0]
     assert move[2] > 0 and np.abs(move[:2]).max() < 1e-9  # straight up
-    image = lift_to_planes(cam, dst, point, lifting_normals(cam, point, None))
+    image = lift_to_planes(cam, dst, point, lifting_normal(cam, None))
     np.testing.assert_allclose(cam.project(image)[1], z, atol=1e-9)  # same camera depth
     assert image[0, 0] < -0.01  # ... so it also moves away from the camera
     for lifted in (upright, image):
         np.testing.assert_allclose(cam.project(lifted)[0], dst, atol=1e-9)
     # a camera looking straight down has no upright plane: the image plane is used
     top = Camera(64, 64, 64.0, 64.0, 32.0, 32.0, look_at([0, 0, 3.0], [0, 0, 0], up=(0, 1, 0)))
-    np.testing.assert_allclose(lifting_normals(top, point, up), lifting_normals(top, point, None))
+    np.testing.assert_allclose(lifting_normal(top, up), lifting_normal(top, None))
 
 
 def test_back_project_inverts_project():
