@@ -87,22 +87,17 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 
 class ProxyRaycaster:
-    """Ray casting against a proxy mesh and its copy inflated by `inflate` (run units).
-
-    The bounding sphere has radius `radius`, grown to hold the inflated proxy when the proxy
-    reaches beyond it (an edit that makes the object taller than the unit sphere)."""
+    """Ray casting against a proxy mesh and its copy inflated by `inflate` (run units)."""
 
     def __init__(self, mesh, inflate: float = 0.04, radius: float = 1.0):
         self.inflate = float(inflate)
-        self.min_radius = float(radius)
+        self.radius = float(radius)
         vertices, self.triangles = mesh_arrays(mesh)
         self.update_vertices(vertices)
 
     def update_vertices(self, vertices: np.ndarray) -> None:
         """Rebuilds both scenes from (warped) vertices [V, 3] with the same triangles."""
         self.vertices = np.ascontiguousarray(vertices, np.float32)
-        reach = float(np.linalg.norm(self.vertices, axis=1).max(initial=0.0)) + 2 * self.inflate
-        self.radius = max(self.min_radius, reach)
         self._scene = MeshRaycaster((self.vertices, self.triangles))
         self._inflated = None
         if self.inflate > 0:
@@ -168,18 +163,18 @@ class BandSampler:
         return self.raycaster.cast(origins, dirs)
 
     def band(self, hits: RayHits) -> tuple[torch.Tensor, torch.Tensor]:
-        """Band [lo, hi] per ray ([R], [R]) from hits, clipped to the sphere interval."""
+        """Band [lo, hi] per ray ([R], [R]) from hits. Not clipped to the sphere interval: a
+        warped proxy may reach beyond the sphere (an edit that makes the object taller)."""
         d = self.d
         direct = torch.isfinite(hits.t_hit)
         t0 = torch.where(direct, hits.t_hit - d, hits.t_inflated)
         t0 = torch.where(torch.isfinite(t0), t0, hits.near)
-        lo = torch.maximum(t0, hits.near)
+        lo = t0.clamp_min(0.0)
         t1 = t0 + 2 * d
         if hits.t_exit is not None:  # passing by: the whole stretch inside the inflated copy
             passing = ~direct & torch.isfinite(hits.t_exit)
             t1 = torch.where(passing, torch.maximum(hits.t_exit, t1), t1)
-        hi = torch.minimum(t1, hits.far)
-        hi = torch.maximum(hi, lo + 1e-4)
+        hi = torch.maximum(t1, lo + 1e-4)
         return lo, hi
 
     def sample(
