@@ -109,6 +109,12 @@ class GeometryEditConfig(LoopOptions):
         "correspondences) or vertex-to-vertex (the ARAP prior keeps the proxy's vertices)",
         choices=["vertices", "chamfer"],
     )
+    prior_vertices: str = option(
+        "all",
+        "the vertices L_gp matches: all of the prior mesh (the paper's) or only the handles "
+        "(the visible vertices the target moved, lifted to 3D; the rest of M_P is ARAP's guess)",
+        choices=["all", "handles"],
+    )
     w_gr: float = option(0.1, "weight of the deformation smoothness L_gr (paper: 0.1)", low=0)
     w_cyc: float = option(10.0, "weight of the cycle loss L_cyc (paper: 10)", low=0)
     w_reg: float = option(
@@ -385,6 +391,9 @@ def geometry_training(
             prior_v = torch.from_numpy(setup.prior.vertices).float().to(device)
             unmoved = prior_v[torch.from_numpy(~setup.prior.moved(cfg.moved_tol)).to(device)]
             surface = torch.cat([proxy_v, prior_v])
+            matched = torch.arange(len(proxy_v), device=device)
+            if cfg.prior_vertices == "handles":
+                matched = torch.from_numpy(setup.prior.handle_ids).long().to(device)
 
         def rebuild(rewarp: bool = True):
             """The sampler of the edited space and the view-K rays that need the field."""
@@ -446,7 +455,9 @@ def geometry_training(
             if cfg.method == "naive":
                 return {**terms, "reg": cfg.w_reg * (reg + 0 * pred.sum())}
             deform, fwd = editing.deform, editing.forward_deform
-            sub = torch.randint(len(proxy_v), (cfg.prior_points,), generator=gen).to(device)
+            sub = matched[
+                torch.randint(len(matched), (cfg.prior_points,), generator=gen).to(device)
+            ]
             uniform = torch.rand(cfg.cycle_points // 2, 3, generator=gen).to(device) * 2 - 1
             cyc_pts = torch.cat([uniform, jittered(surface, cfg.cycle_points - len(uniform))])
             eps = cfg.jitter * torch.randn(cfg.smooth_points, 3, generator=gen).to(device)
@@ -466,7 +477,7 @@ def geometry_training(
             return {
                 **terms,
                 # the paper's L_gp sums over the whole mesh: estimated from the random subset
-                "gp": w_gp * len(proxy_v) / len(sub) * prior_term(proxy_v[sub], prior_v[sub]),
+                "gp": w_gp * len(matched) / len(sub) * prior_term(proxy_v[sub], prior_v[sub]),
                 "cyc": cfg.w_cyc * losses.cycle(deform, fwd, cyc_pts),
                 "gr": cfg.w_gr * losses.deformation_smoothness(deform, smooth_at, eps),
                 "reg": cfg.w_reg * (reg + 0 * pred.sum()),
