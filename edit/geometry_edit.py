@@ -15,10 +15,9 @@ Ours (`--method ours`): the editing field (F_dG, F'_dG, F_dT) in front of the fr
 trained with L_geo = w_gp L_gp + L_gt + w_gr L_gr + w_cyc L_cyc + w_reg L_reg:
 - L_gt on rays of view K: photometric (C_o + C_e vs the target) + silhouette BCE, the target
   being the user's image inside the editable region and the template's rendering outside it;
-- L_gp: F'_dG(proxy vertices) against M_P on the same random vertex subset each step, its weight
-  fading to 0 over the first half of the steps (`gp_fade`; the prior is built from one view and
-  holding the edit to it to the end kept its errors: figurine +1.5 dB, toycar +1.1 dB): by default
-  vertex to vertex in both directions (F'_dG(v_i) = p_i and F_dG(p_i) = v_i: the ARAP prior keeps
+- L_gp: F'_dG(proxy vertices) against M_P on the same random vertex subset each step, at a
+  constant weight (`gp_fade` F: fading to 0 over the fraction F of the steps, which helped while
+  the prior's handles kept their camera depth; see `lift_plane`): by default vertex to vertex in both directions (F'_dG(v_i) = p_i and F_dG(p_i) = v_i: the ARAP prior keeps
   the proxy's vertex order, so its correspondences are known), or the paper's two-way Chamfer
   (`--prior-match chamfer`, for a prior without correspondences);
 - L_gr: smoothness of F_dG at points around the edited surface;
@@ -96,10 +95,9 @@ class GeometryEditConfig(LoopOptions):
     )
     w_gp: float = option(0.03, "weight of the shape-prior loss L_gp (paper: 0.03)", low=0)
     gp_fade: float = option(
-        0.5,
-        "L_gp's weight falls linearly to 0 over this fraction of the steps: the prior steers the "
-        "start, the target's silhouette and colours shape the rest (0: constant, as in the "
-        "paper; the prior's own errors then stay in the edit)",
+        0.0,
+        "L_gp's weight falls linearly to 0 over this fraction of the steps (0: constant, as in "
+        "the paper; a fade limits what a poor prior's errors leave in the edit)",
         low=0.0,
         high=1.0,
     )
