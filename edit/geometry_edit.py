@@ -302,6 +302,11 @@ def with_fit_band(cfg: GeometryEditConfig, fit_cfg) -> GeometryEditConfig:
     return dataclasses.replace(cfg, band_width=float(fit_cfg.band_width))
 
 
+# Options added after edits were recorded whose default is not what those edits did: a run
+# recorded without them counts as having had these values (so it is redone, not reused).
+RECORDED_BEFORE = {"lift_plane": "image"}
+
+
 def prior_weight(cfg: GeometryEditConfig, step: int) -> float:
     """L_gp's weight at `step`: w_gp, falling linearly to 0 at gp_fade x iterations."""
     if cfg.gp_fade <= 0:
@@ -529,7 +534,7 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
         force=force,
         progress=progress,
         advice="a lower --lr-deform (or --lr-naive)",
-        defaults=to_dict(GeometryEditConfig()),
+        defaults={**to_dict(GeometryEditConfig()), **RECORDED_BEFORE},
     )
     done = trainer.finished()
     if done is not None:

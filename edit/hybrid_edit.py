@@ -198,7 +198,10 @@ def _edit(
         progress=progress,
         manual_backward=True,
         advice="lower learning rates (--lr-deform, --lr-grid, --lr-compositor)",
-        defaults=_options(GeometryEditConfig(), TextureEditConfig()),
+        defaults={
+            **_options(GeometryEditConfig(), TextureEditConfig()),
+            **{f"geometry.{k}": v for k, v in geometry_edit.RECORDED_BEFORE.items()},
+        },
     )
     done = trainer.finished()
     if done is not None:
