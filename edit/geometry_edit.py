@@ -15,11 +15,14 @@ Ours (`--method ours`): the editing field (F_dG, F'_dG, F_dT) in front of the fr
 trained with L_geo = w_gp L_gp + L_gt + w_gr L_gr + w_cyc L_cyc + w_reg L_reg:
 - L_gt on rays of view K: photometric (C_o + C_e vs the target) + silhouette BCE, the target
   being the user's image inside the editable region and the template's rendering outside it;
-- L_gp: F'_dG(proxy vertices) against M_P on the same random vertex subset each step, at a
-  constant weight (`gp_fade` F: fading to 0 over the fraction F of the steps, which helped while
-  the prior's handles kept their camera depth; see `lift_plane`): by default vertex to vertex in both directions (F'_dG(v_i) = p_i and F_dG(p_i) = v_i: the ARAP prior keeps
-  the proxy's vertex order, so its correspondences are known), or the paper's two-way Chamfer
-  (`--prior-match chamfer`, for a prior without correspondences);
+- L_gp: F'_dG(proxy vertices) against M_P at the prior's handles (the visible vertices the
+  target moved, lifted to 3D; `prior_vertices all`: every vertex, the paper's, where the far
+  side is ARAP's guess), a random subset each step, at a constant weight (`gp_fade` F: fading to
+  0 over the fraction F of the steps, which helped while the handles kept their camera depth; see
+  `lift_plane`): by default vertex to vertex in both directions (F'_dG(v_i) = p_i and
+  F_dG(p_i) = v_i: the ARAP prior keeps the proxy's vertex order, so its correspondences are
+  known), or the paper's two-way Chamfer (`--prior-match chamfer`, for a prior without
+  correspondences);
 - L_gr: smoothness of F_dG at points around the edited surface;
 - L_cyc: F_dG and F'_dG invert each other at uniform points and surface points;
 - L_reg: neither field moves the surface the prior left in place (points in the sampling band
@@ -108,10 +111,11 @@ class GeometryEditConfig(LoopOptions):
         choices=["vertices", "chamfer"],
     )
     prior_vertices: str = option(
-        "all",
-        "the vertices L_gp matches: all of the prior mesh (the paper's) or only the handles "
-        "(the visible vertices the target moved, lifted to 3D; the rest of M_P is ARAP's guess)",
-        choices=["all", "handles"],
+        "handles",
+        "the vertices L_gp matches: the handles (the visible vertices the target moved, lifted to "
+        "3D: what the target says) or all of the prior mesh (the paper's; the rest of M_P is "
+        "ARAP's guess, which held the far side back: -1.0 to -2.2 dB, bench/RESULTS.md)",
+        choices=["handles", "all"],
     )
     w_gr: float = option(0.1, "weight of the deformation smoothness L_gr (paper: 0.1)", low=0)
     w_cyc: float = option(10.0, "weight of the cycle loss L_cyc (paper: 10)", low=0)
@@ -304,7 +308,7 @@ def with_fit_band(cfg: GeometryEditConfig, fit_cfg) -> GeometryEditConfig:
 
 # Options added after edits were recorded whose default is not what those edits did: a run
 # recorded without them counts as having had these values (so it is redone, not reused).
-RECORDED_BEFORE = {"lift_plane": "image"}
+RECORDED_BEFORE = {"lift_plane": "image", "prior_vertices": "all"}
 
 
 def prior_weight(cfg: GeometryEditConfig, step: int) -> float:
