@@ -55,11 +55,9 @@ VARIANTS = {
     "gp_003": {"w_gp": 0.003},  # L_gp ten times weaker
     "gp_fade_025": {"gp_fade": 0.25},  # L_gp gone after the first quarter of the steps
     "gp_chamfer": {"prior_match": "chamfer"},  # the paper's two-way Chamfer, not vertex pairs
-    "lift_image": {"lift_plane": "image"},
-    "seed_1": {"seed": 1},
-    "gp_handles": {
-        "prior_vertices": "handles"
-    },  # L_gp on the lifted handles only  # ours with another seed: the run-to-run spread  # handles keep their camera depth (before session 8)
+    "lift_image": {"lift_plane": "image"},  # handles keep their camera depth (before session 8)
+    "seed_1": {"seed": 1},  # ours with another seed: the run-to-run spread
+    "gp_all": {"prior_vertices": "all"},  # L_gp on every vertex of the prior mesh (the paper's)
 }
 
 

@@ -483,7 +483,8 @@ def geometry_training(
             w_gp = prior_weight(cfg, i)
             return {
                 **terms,
-                # the paper's L_gp sums over the whole mesh: estimated from the random subset
+                # L_gp sums over the matched vertices (the paper's: the whole mesh), estimated
+                # from the random subset
                 "gp": w_gp * len(matched) / len(sub) * prior_term(proxy_v[sub], prior_v[sub]),
                 "cyc": cfg.w_cyc * losses.cycle(deform, fwd, cyc_pts),
                 "gr": cfg.w_gr * losses.deformation_smoothness(deform, smooth_at, eps),
