@@ -29,16 +29,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 def gt_positions(work: Path, vertices: np.ndarray) -> np.ndarray:
     """Proxy vertices [V, 3] (run units) -> where the GT edit takes them [V, 3] (run units)."""
+    from recon.normalize import Normalization
     from recon.rundir import RunDir
     from recon.synth import stretch_displacement
     from render.io import read_json
 
     cams = RunDir(work / "run").load_cameras()
+    to_run = Normalization(cams.scale, cams.center, cams.rotation)  # synth units -> run units
     edit = read_json(work / "synth" / "edits" / "geometric" / "edit.json")
-    # x_run = scale * rotation @ (x_synth - center)
-    synth = (vertices / cams.scale) @ cams.rotation + cams.center
+    synth = (vertices / cams.scale) @ cams.rotation + cams.center  # to_run inverted
     moved = synth + stretch_displacement(synth, edit["plane"], edit["scale"], edit["falloff"])
-    return cams.scale * (moved - cams.center) @ cams.rotation.T
+    return to_run.apply_points(moved)
 
 
 def prior_rows(work: Path) -> list[tuple[str, float, float, float, float]]:
