@@ -27,6 +27,8 @@ from render.io import atomic_path, read_depth, read_json, read_mask, write_depth
 STAGES = ("ingest", "masks", "poses", "normalize", "depth", "proxy_mesh", "report")
 # The prefix of a ReconConfig option's help text names the stage it belongs to.
 _HELP_PREFIX = {"proxy_mesh": "proxy"}
+# Options added with a default that is not what runs recorded before them did
+RECORDED_BEFORE = {"proxy_carve": False}
 
 
 @dataclass
@@ -179,6 +181,12 @@ class ReconConfig:
         "all around, at low weight (watertight proxy where the hull is; where the hull is "
         "open, no view bounds the object and nothing is closed)",
     )
+    proxy_carve: bool = option(
+        True,
+        "proxy: the real views' depth clears the free space in front of their surfaces in "
+        "every block of the TSDF, so the hull closing (which spans concavities and rises above "
+        "faces seen at grazing angles) survives only where no view sees",
+    )
     min_component: float = option(
         0.02,
         "proxy: keep connected parts with at least this fraction of the largest part's triangles",
@@ -282,9 +290,11 @@ class Pipeline:
         new = stage_options(self.cfg, stage, self.ignore_poses)
         if old is None:
             return []
-        # an option added after the stage ran: the stage ran as its default does
+        # an option added after the stage ran: the stage ran as its default does, unless the
+        # default changed the behaviour (RECORDED_BEFORE)
         defaults = stage_options(ReconConfig(), stage, self.ignore_poses)
-        return changed_options({**defaults, **old}, new)
+        before = {k: v for k, v in RECORDED_BEFORE.items() if k in defaults}
+        return changed_options({**defaults, **before, **old}, new)
 
     def run_stage(self, stage: str, fn, *args) -> dict:
         if self._done(stage) and not self.force:
@@ -754,7 +764,8 @@ class Pipeline:
         if self.cfg.proxy_close_with_hull:
             hull = self._hull(cams, masks)
             closing = closing_depths(hull.vertices, hull.faces, hull.open_faces)
-        mesh = build_proxy(cams, depths, masks, proxy_params(self.cfg), closing=closing)
+        params = proxy_params(self.cfg)
+        mesh = build_proxy(cams, depths, masks, params, closing=closing, carve=self.cfg.proxy_carve)
         write_mesh(self.run.proxy_mesh, mesh)
         return {**mesh_stats(mesh), "proxy_closed_with_hull": closing is not None}
 

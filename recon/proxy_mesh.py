@@ -222,6 +222,23 @@ def cull_outside_silhouettes(
     return mesh
 
 
+def depth_disagreement(mesh, cameras: list[Camera], depths: list[np.ndarray]) -> np.ndarray:
+    """|proxy - depth| along the ray [P] on every pixel where both exist: the mesh ray cast
+    into each camera against its camera-z depth map [H, W] (0 or non-finite: unknown). With
+    dataset depth this is the proxy's error; the fit's band (+-0.04) misses surface farther."""
+    from render.raycast import MeshRaycaster
+
+    caster = MeshRaycaster(mesh)
+    errors = []
+    for cam, depth in zip(cameras, depths, strict=True):
+        z_mesh = caster.depth(cam).reshape(-1)  # [P] camera z, 0: no hit
+        z = np.asarray(depth, np.float32).reshape(-1)
+        cosine = cam.rays()[1] @ cam.camera_to_world[:3, 2]  # [P] ray . optical axis
+        both = (z_mesh > 0) & np.isfinite(z) & (z > 0)
+        errors.append(np.abs(z_mesh - z)[both] / cosine[both])
+    return np.concatenate(errors)
+
+
 def _keep_components(mesh, min_fraction: float):
     """Keeps connected components with >= min_fraction of the largest one's triangles."""
     clusters, counts, _ = mesh.cluster_connected_triangles()
