@@ -45,8 +45,9 @@ def build_proxy(
     progress: bool = True,
 ):
     """Depth maps [H, W] (camera z, 0 unknown) -> the cleaned proxy (legacy o3d mesh): TSDF
-    fusion (`fuse_tsdf`, closed by `closing`; `progress`: its bar), floaters outside the masks
-    culled (when masks are given), `clean_mesh`."""
+    fusion (`fuse_tsdf`, closed by `closing`, carved by the real views' free space with
+    `carve`, which `sine recon` does by default; `progress`: its bar), floaters outside the
+    masks culled (when masks are given), `clean_mesh`."""
     mesh = fuse_tsdf(
         cameras,
         depths,
