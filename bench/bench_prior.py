@@ -33,11 +33,12 @@ def gt_positions(work: Path, vertices: np.ndarray) -> np.ndarray:
     from recon.rundir import RunDir
     from recon.synth import stretch_displacement
     from render.io import read_json
+    from render.mesh_export import denormalize_points
 
     cams = RunDir(work / "run").load_cameras()
     to_run = Normalization(cams.scale, cams.center, cams.rotation)  # synth units -> run units
     edit = read_json(work / "synth" / "edits" / "geometric" / "edit.json")
-    synth = (vertices / cams.scale) @ cams.rotation + cams.center  # to_run inverted
+    synth = denormalize_points(vertices, cams.scale, cams.center, cams.rotation)
     moved = synth + stretch_displacement(synth, edit["plane"], edit["scale"], edit["falloff"])
     return to_run.apply_points(moved)
 

@@ -232,11 +232,12 @@ def depth_disagreement(mesh, cameras: list[Camera], depths: list[np.ndarray]) ->
     caster = MeshRaycaster(mesh)
     errors = []
     for cam, depth in zip(cameras, depths, strict=True):
-        z_mesh = caster.depth(cam).reshape(-1)  # [P] camera z, 0: no hit
-        z = np.asarray(depth, np.float32).reshape(-1)
-        cosine = cam.rays()[1] @ cam.camera_to_world[:3, 2]  # [P] ray . optical axis
-        both = (z_mesh > 0) & np.isfinite(z) & (z > 0)
-        errors.append(np.abs(z_mesh - z)[both] / cosine[both])
+        origins, dirs = cam.rays()  # [P, 3] each, unit directions
+        t_mesh = caster.cast(origins, dirs).t  # [P] along the ray, inf: no hit
+        z = np.asarray(depth, np.float32).reshape(-1)  # [P] camera z
+        t_depth = z / (dirs @ cam.camera_to_world[:3, 2])  # [P] along the ray
+        both = np.isfinite(t_mesh) & np.isfinite(z) & (z > 0)
+        errors.append(np.abs(t_mesh - t_depth)[both])
     return np.concatenate(errors)
 
 
