@@ -184,9 +184,12 @@ def memory_child(run_dir: str, size: int, mode: str) -> dict:
     template, background, fit_cfg = load_fitted(run.root)
     freeze(template)
     camera = scaled_camera(run.load_cameras().frames[0], size)
-    view = sample_view(camera, template, make_sampler(fit_cfg, run), background)
+    sampler = make_sampler(fit_cfg, run)
+    view = sample_view(camera, template, sampler, background, features=True)
     h, w = view.size
-    texture, comp = TextureField(template.grid.cfg), Compositor()
+    # F_dT as the default edit's: reading the template's geometry feature per sample
+    texture = TextureField(template.grid.cfg, cond_dim=template.cfg.geo_feat_dim)
+    comp = Compositor()
     with torch.no_grad():
         texture.mlp[-1].weight.normal_(0, 0.1)
     dino = load_dino(torch.device("cpu"))

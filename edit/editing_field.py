@@ -29,17 +29,34 @@ class EditingField(nn.Module):
     """F_dG, F'_dG and F_dT of one edit, all three scaled by one `EditGate` (1 everywhere until
     it is set: see edit/edit_gate.py)."""
 
-    def __init__(self, texture_grid: HashGridConfig | None = None, n_freqs: int = 4):
+    def __init__(
+        self, texture_grid: HashGridConfig | None = None, n_freqs: int = 4, texture_cond: int = 0
+    ):
+        """texture_cond: F_dT reads the template's geometry feature (its width) besides the
+        position; 0: the position only (see edit/texture_field.py)."""
         super().__init__()
         self.gate = EditGate()
         self.deform = DeformationField(n_freqs, gate=self.gate)
         self.forward_deform = DeformationField(n_freqs, gate=self.gate)
-        self.texture = TextureField(texture_grid, gate=self.gate)
+        self.texture = TextureField(texture_grid, gate=self.gate, cond_dim=texture_cond)
+
+    @classmethod
+    def from_state(cls, texture_grid: HashGridConfig, state: dict) -> EditingField:
+        """An editing field shaped for the saved `state` (F_dT's condition width is read off its
+        first layer: files written before F_dT had one load as position-only)."""
+        editing = cls(texture_grid)
+        grid_dim = editing.texture.grid.output_dim
+        cond = int(state["texture.mlp.0.weight"].shape[1]) - grid_dim
+        if cond:
+            editing = cls(texture_grid, texture_cond=cond)
+        editing.load_state_dict(state)
+        return editing
 
 
 def edited_query(template: nn.Module, editing: EditingField, strength: float = 1.0) -> FieldQuery:
     """The field callback of the edited scene: points [M, 3], dirs [M, 3] in edited space ->
-    {"sigma" [M], "rgb" [M, 3] (template colour at x'), "mod" [M, 3] (modification colour)}.
+    {"sigma" [M], "rgb" [M, 3] (template colour at x'), "mod" [M, 3] (modification colour),
+    "geo_feat" [M, F] (the template's geometry feature at x', F_dT's condition when it reads one)}.
 
     The template must be frozen with `render.template_field.freeze` (not `torch.no_grad`), so
     gradients reach F_dG through the template's positions."""
@@ -47,10 +64,12 @@ def edited_query(template: nn.Module, editing: EditingField, strength: float = 1
     def query(points: torch.Tensor, dirs: torch.Tensor) -> dict[str, torch.Tensor]:
         x_template = editing.deform(points, strength)
         out = template(x_template, dirs)
+        cond = out["geo_feat"] if editing.texture.cond_dim else None
         return {
             "sigma": out["sigma"],
             "rgb": out["rgb"],
-            "mod": strength * editing.texture(points),
+            "mod": strength * editing.texture(points, cond),
+            "geo_feat": out["geo_feat"],
         }
 
     return query

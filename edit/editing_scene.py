@@ -66,7 +66,8 @@ def edited_sampler(
 class EditedField(nn.Module):
     """A geometric edit as a plain radiance field (the template of a hybrid edit's texture
     phase): points [M, 3], dirs [M, 3] in edited space -> {"sigma" [M], "rgb" [M, 3]}, the
-    template's density and colour at F_dG(x) plus F_dT's modification, clamped to [0, 1]."""
+    template's density and colour at F_dG(x) plus F_dT's modification, clamped to [0, 1], and its
+    geometry feature {"geo_feat" [M, F]} at F_dG(x)."""
 
     def __init__(self, template: nn.Module, editing: EditingField, strength: float = 1.0):
         super().__init__()
@@ -88,7 +89,11 @@ class EditedField(nn.Module):
 
     def forward(self, points: torch.Tensor, dirs: torch.Tensor) -> dict[str, torch.Tensor]:
         out = edited_query(self.template, self.editing, self.strength)(points, dirs)
-        return {"sigma": out["sigma"], "rgb": (out["rgb"] + out["mod"]).clamp(0.0, 1.0)}
+        return {
+            "sigma": out["sigma"],
+            "rgb": (out["rgb"] + out["mod"]).clamp(0.0, 1.0),
+            "geo_feat": out["geo_feat"],
+        }
 
 
 def deformed_template(
@@ -250,13 +255,17 @@ def scene_from_folder(run: RunDir, edit_dir, strength: float, device: torch.devi
         module.load_state_dict({k: v.to(device) for k, v in state.items()})
         return module.eval()
 
+    def editing_field(state: dict) -> EditingField:
+        grid = template.field.grid.cfg
+        return EditingField.from_state(grid, state).to(device).eval()
+
     band = float(data["band_width"])
     texture = data
     if data["method"] == "hybrid":  # the texture edit of the geometric edit
-        geometry = loaded(EditingField(template.field.grid.cfg), data["geometry"]["editing"])
+        geometry = editing_field(data["geometry"]["editing"])
         template = deformed_template(template, freeze(geometry), band, strength)
         texture = data["texture"]
-    editing = loaded(EditingField(template.field.grid.cfg), texture["editing"])
+    editing = editing_field(texture["editing"])
     common = dict(
         run=run,
         device=device,

@@ -230,7 +230,7 @@ def _edit(
     geometry = geometry_training(
         gcfg, geo_setup, field, background, template.fit_config, sampler, device, not one
     )
-    tex_editing, compositor, tex_state, tex_groups = texture_parts(field.grid.cfg, tcfg, device)
+    tex_editing, compositor, tex_state, tex_groups = texture_parts(field, tcfg, device)
 
     # one optimiser: each phase's groups follow their own schedule over their own steps (a
     # group gets no gradient outside its phase, and Adam skips it)

@@ -17,8 +17,9 @@ RUN/edits/NAME/, as for geometry edits:
 
 Ours (`--method ours`): the template and F_dG stay frozen (F_dG exactly the identity), so every
 view's template image I_o and sample weights are constants (`edit.texture_views`); F_dT (hash
-grid with a coarse-to-fine window over its levels, fully open at `coarse_to_fine` of training)
-renders the modification image I_m with those weights, and the compositor (`edit.compositor`)
+grid with a coarse-to-fine window over its levels, fully open at `coarse_to_fine` of training;
+with `template_feature`, beyond the paper, its MLP also reads the template's geometry feature
+at the point, kept per sample with the view) renders the modification image I_m with those weights, and the compositor (`edit.compositor`)
 blends I_o and I_m into the edited image I. Each step, with deferred back-propagation
 (`edit.deferred`: full images rendered without a graph, the image losses' gradient cached, then
 the images re-rendered tile by tile with a graph, F_dT queried in chunks of samples):
@@ -57,7 +58,7 @@ from __future__ import annotations
 
 import copy
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -114,6 +115,12 @@ class TextureEditConfig(LoopOptions):
         True, "blend I_o and I_m with the 2D compositor (--no-compositor: I_o + I_m, a baseline)"
     )
     iterations: int = option(600, "training steps", low=1)
+    template_feature: bool = option(
+        True,
+        "F_dT also reads the template's geometry feature at each point (as the template's own "
+        "colour head): parts that look alike in the template change alike, on every side "
+        "(--no-template-feature: position only, the paper's F_dT)",
+    )
     lr_grid: float = option(
         1e-3,
         "Adam learning rate of F_dT's hash table (higher: sharper, but the fine levels fit "
@@ -243,7 +250,9 @@ def prepare(
     camera = pick_view(run, view)
     size = (camera.width, camera.height)
     background = bg().detach().cpu().numpy()
-    samples = sample_view(camera, template, sampler, bg, cfg.min_weight, device=device)
+    samples = sample_view(
+        camera, template, sampler, bg, cfg.min_weight, device=device, features=cfg.template_feature
+    )
     h, w = camera.height, camera.width
     t_rgb = samples.template_rgb.reshape(h, w, 3).clamp(0, 1).cpu().numpy()
     t_alpha = samples.opacity.reshape(h, w).cpu().numpy()
@@ -512,7 +521,7 @@ def _naive(cfg, trainer, template, background, sampler, setup: TextureSetup, dev
 
 def _ours(run, cfg, trainer, template, sampler, background, setup: TextureSetup, device):
     """F_dT + compositor with deferred back-propagation (see the module doc)."""
-    editing, compositor, state, groups = texture_parts(template.grid.cfg, cfg, device)
+    editing, compositor, state, groups = texture_parts(template, cfg, device)
     trainer.start(state, groups, lr_final_factor=cfg.lr_final_factor)
     step, mask_source = texture_steps(
         run,
@@ -529,10 +538,21 @@ def _ours(run, cfg, trainer, template, sampler, background, setup: TextureSetup,
     return editing, compositor, step, mask_source
 
 
-def texture_parts(grid_cfg, cfg: TextureEditConfig, device):
-    """(editing field, compositor or None, state, parameter groups) of a texture edit, before
-    `Trainer.start`: F_dT learns, F_dG and F'_dG are exactly the identity (frozen)."""
-    editing = EditingField(grid_cfg).to(device)
+def geometry_feature_dim(field) -> int:
+    """Width of the geometry feature ("geo_feat") a radiance field returns."""
+    param = next(field.parameters())
+    x = torch.zeros(1, 3, dtype=param.dtype, device=param.device)
+    d = torch.tensor([[0.0, 0.0, 1.0]], dtype=param.dtype, device=param.device)
+    with torch.no_grad():
+        return int(field(x, d)["geo_feat"].shape[1])
+
+
+def texture_parts(template, cfg: TextureEditConfig, device):
+    """(editing field, compositor or None, state, parameter groups) of a texture edit on the
+    frozen `template` field, before `Trainer.start`: F_dT learns (reading the template's
+    geometry feature with `cfg.template_feature`), F_dG and F'_dG are exactly the identity."""
+    cond = geometry_feature_dim(template) if cfg.template_feature else 0
+    editing = EditingField(template.grid.cfg, texture_cond=cond).to(device)
     for deform in (editing.deform, editing.forward_deform):  # exactly the identity, frozen
         nn.init.zeros_(deform.mlp[-1].weight)
         nn.init.zeros_(deform.mlp[-1].bias)
@@ -584,7 +604,15 @@ def texture_steps(
     masker, mask_source = editable_masker(run, setup, cfg, device, feature_geometry)
 
     def make_view(camera) -> ViewSamples:
-        view = sample_view(camera, template, sampler, background, cfg.min_weight, device=device)
+        view = sample_view(
+            camera,
+            template,
+            sampler,
+            background,
+            cfg.min_weight,
+            device=device,
+            features=cfg.template_feature,
+        )
         view.editable = masker(view)
         if tex_loss is not None:
             image = view.template_rgb.reshape(*view.size, 3).clamp(0, 1).permute(2, 0, 1)[None]
@@ -640,15 +668,23 @@ def texture_steps(
 
     tile = cfg.tile + cfg.tile % 2
 
-    def unedited_samples(views: list[ViewSamples]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Up to `reg_points` kept samples (points [M, 3], weights [M]) of the views' pixels
-        that must not change."""
-        points = torch.cat([v.points[~v.editable[v.pixel]] for v in views])
-        weights = torch.cat([v.weights[~v.editable[v.pixel]] for v in views])
-        if len(points) > cfg.reg_points:
-            pick = torch.randperm(len(points), generator=gen)[: cfg.reg_points].to(device)
+    def unedited_samples(views: list[ViewSamples]) -> ViewSamples | None:
+        """Up to `reg_points` kept samples of the views' pixels that must not change (as one
+        ViewSamples of points, weights and features; None when there are none)."""
+        kept = [v.subset(torch.nonzero(~v.editable)[:, 0]) for v in views]
+        n = sum(int(v.points.shape[0]) for v in kept)
+        if n == 0:
+            return None
+        points = torch.cat([v.points for v in kept])
+        weights = torch.cat([v.weights for v in kept])
+        features = None
+        if texture.cond_dim:
+            features = torch.cat([v.features for v in kept])
+        if n > cfg.reg_points:
+            pick = torch.randperm(n, generator=gen)[: cfg.reg_points].to(device)
             points, weights = points[pick], weights[pick]
-        return points, weights
+            features = None if features is None else features[pick]
+        return replace(kept[0], points=points, weights=weights, features=features)
 
     def step(i: int) -> dict[str, torch.Tensor]:
         texture.set_progress(i / max(1.0, cfg.coarse_to_fine * cfg.iterations))
@@ -689,10 +725,10 @@ def texture_steps(
         ]
         _, terms = deferred_backward(images, loss_fn)
         if cfg.w_reg_field > 0:  # F_dT itself is zero where unedited pixels look
-            points, weights = unedited_samples(views)
-            if len(points):
-                m2 = texture(points).pow(2).sum(-1)
-                reg_field = cfg.w_reg_field * (weights * m2).sum() / weights.sum()
+            still = unedited_samples(views)
+            if still is not None:
+                m2 = still.modification(texture).pow(2).sum(-1)
+                reg_field = cfg.w_reg_field * (still.weights * m2).sum() / still.weights.sum()
                 reg_field.backward()
                 terms["reg_field"] = reg_field
         return {k: v.detach() for k, v in terms.items()}

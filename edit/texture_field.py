@@ -8,6 +8,12 @@ Coarse-to-fine (Nerfies' windowed encoding, the paper's supplementary): the hash
 weighted by a cosine window w_l(a) = (1 - cos(pi * clamp(a - l, 0, 1))) / 2 for level l, where
 the window position a grows from `window_start` to the number of levels during training;
 `set_progress(fraction)` moves it. Level 0 is always fully on.
+
+With `cond_dim` > 0 (beyond the paper) the MLP also reads a per-point condition [N, cond_dim]:
+texture edits give it the frozen template's geometry feature at the point (what the template's
+own colour head reads), so points that look alike in the template (a stripe, the body around
+it) can change differently and the change recurs wherever the template's feature does, on the
+part's sides view K does not show too (the hash grid alone knows only positions).
 """
 
 from __future__ import annotations
@@ -30,7 +36,8 @@ def cosine_window(n_levels: int, alpha: float) -> torch.Tensor:
 
 
 class TextureField(nn.Module):
-    """x [N, 3] (template space) -> modification colour m' [N, 3] in (-1, 1)."""
+    """x [N, 3] (template space) and optionally a condition [N, C] -> modification colour m'
+    [N, 3] in (-1, 1)."""
 
     def __init__(
         self,
@@ -39,14 +46,16 @@ class TextureField(nn.Module):
         bound: float = 1.0,
         window_start: float = 1.0,
         gate=None,
+        cond_dim: int = 0,
     ):
         super().__init__()
         # optional module x [N, 3] -> [N] scaling the modification colour; not a submodule (its owner,
         # e.g. EditingField, saves it once)
         object.__setattr__(self, "gate", gate)
         self.grid = HashGrid(grid or HashGridConfig(log2_table=15), bound=bound)
+        self.cond_dim = int(cond_dim)
         self.mlp = nn.Sequential(
-            nn.Linear(self.grid.output_dim, hidden), nn.ReLU(), nn.Linear(hidden, 3)
+            nn.Linear(self.grid.output_dim + self.cond_dim, hidden), nn.ReLU(), nn.Linear(hidden, 3)
         )
         nn.init.zeros_(self.mlp[-1].weight)
         nn.init.zeros_(self.mlp[-1].bias)
@@ -59,8 +68,13 @@ class TextureField(nn.Module):
         alpha = self.window_start + (n - self.window_start) * min(max(fraction, 0.0), 1.0)
         self.window.copy_(cosine_window(n, alpha))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, cond: torch.Tensor | None = None) -> torch.Tensor:
+        """x [N, 3], cond [N, cond_dim] (required when cond_dim > 0, else ignored) -> m' [N, 3]."""
         feats = self.grid(x).view(x.shape[0], self.grid.cfg.n_levels, -1)  # [N, L, F]
         feats = (feats * self.window[None, :, None]).flatten(1)
+        if self.cond_dim:
+            if cond is None:
+                raise ValueError("this texture field reads a condition: pass cond [N, cond_dim]")
+            feats = torch.cat([feats, cond.to(feats.dtype)], dim=1)
         mod = torch.sigmoid(self.mlp(feats)) * 2.0 - 1.0
         return mod if self.gate is None else mod * self.gate(x)[:, None]

@@ -44,6 +44,17 @@ class ViewSamples:
     shape: tuple[int, int] | None = None  # (h, w) of a crop; None: the camera's image
     goal: torch.Tensor | None = None  # [P, 3] target colours (the edited view)
     region: torch.Tensor | None = None  # [P] the edit's 3D gate rendered (compositor's g)
+    features: torch.Tensor | None = None  # [S, F] the template's geometry feature per sample
+
+    def modification(self, texture, s0: int = 0, s1: int | None = None) -> torch.Tensor:
+        """F_dT at samples s0..s1-1 [s, 3] (given the samples' template feature when F_dT
+        reads one)."""
+        cond = None
+        if getattr(texture, "cond_dim", 0):
+            if self.features is None:
+                raise ValueError("F_dT reads the template's feature: sample_view(features=True)")
+            cond = self.features[s0:s1]
+        return texture(self.points[s0:s1], cond)
 
     @property
     def size(self) -> tuple[int, int]:
@@ -78,6 +89,7 @@ class ViewSamples:
             shape=shape,
             goal=None if self.goal is None else self.goal[pixels],
             region=None if self.region is None else self.region[pixels],
+            features=None if self.features is None else self.features[ids],
         )
 
     def crop(self, y0: int, y1: int, x0: int, x1: int) -> ViewSamples:
@@ -88,10 +100,18 @@ class ViewSamples:
 
 @torch.no_grad()
 def sample_view(
-    camera, template, sampler, background, min_weight: float = 1e-3, chunk: int = 8192, device=None
+    camera,
+    template,
+    sampler,
+    background,
+    min_weight: float = 1e-3,
+    chunk: int = 8192,
+    device=None,
+    features: bool = False,
 ) -> ViewSamples:
     """Renders `camera` through the frozen `template` (as `render.renderer.render_rays`, without
-    perturbation) and keeps its samples of weight > min_weight (0 keeps every sample)."""
+    perturbation) and keeps its samples of weight > min_weight (0 keeps every sample);
+    features: also keeps each sample's geometry feature (the template's "geo_feat")."""
     device = device or torch.device("cpu")
     o_all, d_all = (torch.from_numpy(a).to(device) for a in camera.rays())
     n = len(o_all)
@@ -99,7 +119,7 @@ def sample_view(
     opacity = torch.zeros(n, device=device)
     depth = torch.zeros(n, device=device)
     counts = torch.zeros(n, dtype=torch.int64, device=device)
-    points, weights = [], []
+    points, weights, feats = [], [], []
     for start in range(0, n, chunk):
         o, d = o_all[start : start + chunk], d_all[start : start + chunk]
         hits = sampler.cast(o, d)
@@ -126,6 +146,8 @@ def sample_view(
         counts[gidx] = keep.sum(dim=1)
         points.append(pts[keep])
         weights.append(w[keep])
+        if features:
+            feats.append(res["geo_feat"].view(*t.shape, -1)[keep])
     offsets = torch.zeros(n + 1, dtype=torch.int64, device=device)
     offsets[1:] = torch.cumsum(counts, 0)
     empty = torch.zeros(0, 3, device=device)
@@ -139,6 +161,9 @@ def sample_view(
         weights=torch.cat(weights) if weights else empty[:, 0],
         pixel=torch.repeat_interleave(torch.arange(n, device=device), counts),
         offsets=offsets,
+        features=(torch.cat(feats) if feats else torch.zeros(0, 0, device=device))
+        if features
+        else None,
     )
 
 
@@ -158,7 +183,7 @@ class _ChunkedModification(torch.autograd.Function):
         out = view.template_rgb.new_zeros(view.n_pixels, 3)
         for s0 in range(0, view.points.shape[0], chunk):
             s1 = s0 + chunk
-            m = texture(view.points[s0:s1]) * view.weights[s0:s1, None]
+            m = view.modification(texture, s0, s1) * view.weights[s0:s1, None]
             out.index_add_(0, view.pixel[s0:s1], m)
         return out
 
@@ -168,7 +193,7 @@ class _ChunkedModification(torch.autograd.Function):
         with torch.enable_grad():
             for s0 in range(0, view.points.shape[0], chunk):
                 s1 = s0 + chunk
-                m = texture(view.points[s0:s1])
+                m = view.modification(texture, s0, s1)
                 torch.autograd.backward(m, grad[view.pixel[s0:s1]] * view.weights[s0:s1, None])
         anchor_grad = texture.mlp[-1].bias.new_zeros(texture.mlp[-1].bias.shape)
         return anchor_grad, None, None, None, None
@@ -188,7 +213,7 @@ def render_modification(
     out = view.template_rgb.new_zeros(view.n_pixels, 3)
     if view.points.shape[0] == 0:
         return out
-    m = texture(view.points) * view.weights[:, None]  # [S, 3]
+    m = view.modification(texture) * view.weights[:, None]  # [S, 3]
     return out.index_add(0, view.pixel, m)
 
 

@@ -123,8 +123,9 @@ def test_cosine_window_by_hand():
 
 
 # ---- deferred back-propagation --------------------------------------------------------------
-def _random_view(h: int, w: int, seed: int) -> ViewSamples:
-    """A synthetic view: 0-3 samples per pixel at random points with random weights."""
+def _random_view(h: int, w: int, seed: int, cond_dim: int = 0) -> ViewSamples:
+    """A synthetic view: 0-3 samples per pixel at random points with random weights (and
+    random `cond_dim` features per sample)."""
     g = torch.Generator().manual_seed(seed)
     counts = torch.randint(0, 4, (h * w,), generator=g)
     n = int(counts.sum())
@@ -141,6 +142,7 @@ def _random_view(h: int, w: int, seed: int) -> ViewSamples:
         weights=torch.rand(n, generator=g) * 0.5,
         pixel=torch.repeat_interleave(torch.arange(h * w), counts),
         offsets=offsets,
+        features=torch.randn(n, cond_dim, generator=g) if cond_dim else None,
     )
 
 
@@ -148,16 +150,18 @@ def _grads(*modules) -> list[torch.Tensor]:
     return [p.grad.clone() for m in modules for p in m.parameters() if p.requires_grad]
 
 
-def test_deferred_gradients_equal_direct_backpropagation():
-    """Two images through F_dT and the compositor, an image-space loss mixing all pixels: the
-    parameter gradients of deferred back-propagation in tiles of 4 px (halo 8, F_dT on 5
-    samples at a time) equal those of direct back-propagation through the whole images at once."""
+@pytest.mark.parametrize("cond_dim", [0, 4])
+def test_deferred_gradients_equal_direct_backpropagation(cond_dim):
+    """Two images through F_dT (position only, or reading per-sample features) and the
+    compositor, an image-space loss mixing all pixels: the parameter gradients of deferred
+    back-propagation in tiles of 4 px (halo 8, F_dT on 5 samples at a time) equal those of
+    direct back-propagation through the whole images at once."""
     torch.manual_seed(0)
-    texture, comp = TextureField(SMALL_GRID), Compositor()
+    texture, comp = TextureField(SMALL_GRID, cond_dim=cond_dim), Compositor()
     with torch.no_grad():  # leave the zero start so every parameter gets a gradient
         texture.mlp[-1].weight.normal_(0, 0.5)
         comp.head.weight.normal_(0, 0.5)
-    views = [_random_view(14, 11, 1), _random_view(9, 16, 2)]
+    views = [_random_view(14, 11, 1, cond_dim), _random_view(9, 16, 2, cond_dim)]
     goal = [torch.rand(*v.size, 3) for v in views]
 
     def loss_fn(leaves):
@@ -227,16 +231,38 @@ def test_image_tiles_cover_the_image_once_with_even_halo_boxes():
     assert all(c[0] % 2 == 0 and c[2] % 2 == 0 for c in calls)
 
 
+def test_texture_field_reads_its_condition_and_reloads_with_its_width():
+    """F_dT with a condition: different features at the same point give different colours, a
+    missing condition is an error; `EditingField.from_state` rebuilds either layout (a state
+    saved before F_dT had a condition loads as position-only)."""
+    torch.manual_seed(0)
+    with_cond = EditingField(SMALL_GRID, texture_cond=5)
+    with torch.no_grad():
+        with_cond.texture.mlp[-1].weight.normal_(0, 0.5)
+    x = torch.rand(6, 3) - 0.5
+    a, b = torch.randn(6, 5), torch.randn(6, 5)
+    assert (with_cond.texture(x, a) - with_cond.texture(x, b)).abs().max() > 1e-3
+    with pytest.raises(ValueError, match="condition"):
+        with_cond.texture(x)
+    for field, cond in ((with_cond, a), (EditingField(SMALL_GRID), None)):
+        reloaded = EditingField.from_state(SMALL_GRID, field.state_dict())
+        assert reloaded.texture.cond_dim == (0 if cond is None else 5)
+        assert torch.equal(reloaded.texture(x, cond), field.texture(x, cond))
+
+
 # ---- views kept for F_dT against the renderer ------------------------------------------------
-def test_sample_view_matches_the_renderer(tiny_fitted_run):
+@pytest.mark.parametrize("features", [False, True])
+def test_sample_view_matches_the_renderer(tiny_fitted_run, features):
     """I_o of the kept view is the template's rendering; with every sample kept, I_m is the
-    renderer's "mod" channel through the editing field (training renders what the scene does)."""
+    renderer's "mod" channel through the editing field (training renders what the scene does),
+    also when F_dT reads the template's geometry feature kept per sample."""
     torch.manual_seed(0)
     template, background, fit_cfg = load_fitted(tiny_fitted_run)
     freeze(template)
     sampler = make_sampler(fit_cfg, RunDir(tiny_fitted_run))
     camera = RunDir(tiny_fitted_run).load_cameras().frames[VIEW].resized(40, 40)
-    view = sample_view(camera, template, sampler, background, min_weight=0.0)
+    sample = dict(device=None, features=features)
+    view = sample_view(camera, template, sampler, background, min_weight=0.0, **sample)
     reference = render_image(camera, template, sampler, background)
     assert torch.allclose(
         view.template_rgb, torch.from_numpy(reference["rgb"]).reshape(-1, 3), atol=1e-5
@@ -244,7 +270,7 @@ def test_sample_view_matches_the_renderer(tiny_fitted_run):
     assert torch.allclose(
         view.opacity, torch.from_numpy(reference["opacity"]).reshape(-1), atol=1e-5
     )
-    editing = EditingField(template.grid.cfg)
+    editing = EditingField(template.grid.cfg, texture_cond=template.cfg.geo_feat_dim * features)
     with torch.no_grad():
         editing.texture.mlp[-1].weight.normal_(0, 0.5)
         for deform in (editing.deform, editing.forward_deform):
@@ -254,7 +280,7 @@ def test_sample_view_matches_the_renderer(tiny_fitted_run):
     assert mod.abs().max() > 0.01
     assert torch.allclose(mod, torch.from_numpy(rendered["mod"]).reshape(-1, 3), atol=1e-5)
     # pruned samples: fewer queries, nearly the same image
-    pruned = sample_view(camera, template, sampler, background, min_weight=1e-2)
+    pruned = sample_view(camera, template, sampler, background, min_weight=1e-2, **sample)
     assert pruned.points.shape[0] < 0.8 * view.points.shape[0]
     assert (render_modification(pruned, editing.texture) - mod).abs().max() < 0.05
     # a crop holds its pixels' samples
