@@ -201,6 +201,7 @@ def _edit(
         defaults={
             **_options(GeometryEditConfig(), TextureEditConfig()),
             **{f"geometry.{k}": v for k, v in geometry_edit.RECORDED_BEFORE.items()},
+            **{f"texture.{k}": v for k, v in texture_edit.RECORDED_BEFORE.items()},
         },
     )
     done = trainer.finished()

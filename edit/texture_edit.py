@@ -208,6 +208,10 @@ class TextureEditConfig(LoopOptions):
 
 RUNTIME_KEYS = (*LOOP_RUNTIME_KEYS, "previews", "chunk")
 
+# Options added after edits were recorded whose default is not what those edits did: a run
+# recorded without them counts as having had these values (so it is redone, not reused).
+RECORDED_BEFORE = {"template_feature": False}
+
 
 # ---- preparation --------------------------------------------------------------------------
 @dataclass
@@ -402,7 +406,7 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
         progress=progress,
         manual_backward=cfg.method == "ours",
         advice="lower learning rates (--lr-grid, --lr-compositor, --lr-naive)",
-        defaults=to_dict(TextureEditConfig()),
+        defaults={**to_dict(TextureEditConfig()), **RECORDED_BEFORE},
     )
     done = trainer.finished()
     if done is not None:
