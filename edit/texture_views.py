@@ -50,7 +50,7 @@ class ViewSamples:
         """F_dT at samples s0..s1-1 [s, 3] (given the samples' template feature when F_dT
         reads one)."""
         cond = None
-        if getattr(texture, "cond_dim", 0):
+        if texture.cond_dim:
             if self.features is None:
                 raise ValueError("F_dT reads the template's feature: sample_view(features=True)")
             cond = self.features[s0:s1]
@@ -151,6 +151,9 @@ def sample_view(
     offsets = torch.zeros(n + 1, dtype=torch.int64, device=device)
     offsets[1:] = torch.cumsum(counts, 0)
     empty = torch.zeros(0, 3, device=device)
+    kept_features = None
+    if features:
+        kept_features = torch.cat(feats) if feats else torch.zeros(0, 0, device=device)
     return ViewSamples(
         camera=camera,
         template_rgb=rgb,
@@ -161,9 +164,7 @@ def sample_view(
         weights=torch.cat(weights) if weights else empty[:, 0],
         pixel=torch.repeat_interleave(torch.arange(n, device=device), counts),
         offsets=offsets,
-        features=(torch.cat(feats) if feats else torch.zeros(0, 0, device=device))
-        if features
-        else None,
+        features=kept_features,
     )
 
 
