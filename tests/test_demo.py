@@ -96,7 +96,13 @@ def test_fast_demo_end_to_end_then_resumes(tmp_path, capsys):
     assert len(mesh.vertices) > 1000 and mesh.visual.vertex_colors.shape[0] == len(mesh.vertices)
 
     s = read_json(out / "demo_summary.json")
-    assert s["registered_views"] == 24 and s["pose_source"].startswith("sfm")
+    assert s["registered_views"] == 24
+    # SfM's poses, or the turntable model where the recon's self-check rejected them (its
+    # designed fallback; seen once under heavy load: global SfM's poses of the symmetric car,
+    # 0.41 px reprojection error but views out of ring order, carved an empty visual hull)
+    report = read_json(out / "run" / "recon_report.json")
+    rejected = report.get("sfm_self_check", {}).get("verdict") == "poor"
+    assert s["pose_source"].startswith("sfm") or (s["pose_source"] == "turntable" and rejected)
     numbers = [
         "template_heldout_psnr",
         "semantic_mask_heldout_iou_mean",
