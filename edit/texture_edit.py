@@ -19,10 +19,11 @@ Ours (`--method ours`): the template and F_dG stay frozen (F_dG exactly the iden
 view's template image I_o and sample weights are constants (`edit.texture_views`); F_dT (hash
 grid with a coarse-to-fine window over its levels, fully open at `coarse_to_fine` of training;
 with `template_feature`, beyond the paper, its MLP also reads the template's geometry feature
-at the point, kept per sample with the view) renders the modification image I_m with those weights, and the compositor (`edit.compositor`)
-blends I_o and I_m into the edited image I. Each step, with deferred back-propagation
-(`edit.deferred`: full images rendered without a graph, the image losses' gradient cached, then
-the images re-rendered tile by tile with a graph, F_dT queried in chunks of samples):
+at the point, kept per sample with the view) renders the modification image I_m with those
+weights, and the compositor (`edit.compositor`) blends I_o and I_m into the edited image I.
+Each step, with deferred back-propagation (`edit.deferred`: full images rendered without a
+graph, the image losses' gradient cached, then the images re-rendered tile by tile with a
+graph, F_dT queried in chunks of samples):
 
 - aligned case, a crop of view K (`patch_size`, working resolution): photometric
   ||I - target||^2 on the painted region's pixels, L_reg ||I - I_o||^2 on the others; a share
@@ -58,7 +59,7 @@ from __future__ import annotations
 
 import copy
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -672,23 +673,18 @@ def texture_steps(
 
     tile = cfg.tile + cfg.tile % 2
 
-    def unedited_samples(views: list[ViewSamples]) -> ViewSamples | None:
-        """Up to `reg_points` kept samples of the views' pixels that must not change (as one
-        ViewSamples of points, weights and features; None when there are none)."""
+    def unedited_samples(views: list[ViewSamples]):
+        """Up to `reg_points` kept samples of the views' pixels that must not change: points
+        [M, 3], their template features [M, F] (None when F_dT reads none) and weights [M]."""
         kept = [v.subset(torch.nonzero(~v.editable)[:, 0]) for v in views]
-        n = sum(int(v.points.shape[0]) for v in kept)
-        if n == 0:
-            return None
         points = torch.cat([v.points for v in kept])
         weights = torch.cat([v.weights for v in kept])
-        features = None
-        if texture.cond_dim:
-            features = torch.cat([v.features for v in kept])
-        if n > cfg.reg_points:
-            pick = torch.randperm(n, generator=gen)[: cfg.reg_points].to(device)
+        features = torch.cat([v.features for v in kept]) if texture.cond_dim else None
+        if len(points) > cfg.reg_points:
+            pick = torch.randperm(len(points), generator=gen)[: cfg.reg_points].to(device)
             points, weights = points[pick], weights[pick]
             features = None if features is None else features[pick]
-        return replace(kept[0], points=points, weights=weights, features=features)
+        return points, features, weights
 
     def step(i: int) -> dict[str, torch.Tensor]:
         texture.set_progress(i / max(1.0, cfg.coarse_to_fine * cfg.iterations))
@@ -729,10 +725,10 @@ def texture_steps(
         ]
         _, terms = deferred_backward(images, loss_fn)
         if cfg.w_reg_field > 0:  # F_dT itself is zero where unedited pixels look
-            still = unedited_samples(views)
-            if still is not None:
-                m2 = still.modification(texture).pow(2).sum(-1)
-                reg_field = cfg.w_reg_field * (still.weights * m2).sum() / still.weights.sum()
+            points, features, weights = unedited_samples(views)
+            if len(points):
+                m2 = texture(points, features).pow(2).sum(-1)
+                reg_field = cfg.w_reg_field * (weights * m2).sum() / weights.sum()
                 reg_field.backward()
                 terms["reg_field"] = reg_field
         return {k: v.detach() for k, v in terms.items()}
