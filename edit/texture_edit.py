@@ -676,10 +676,12 @@ def texture_steps(
     def unedited_samples(views: list[ViewSamples]):
         """Up to `reg_points` kept samples of the views' pixels that must not change: points
         [M, 3], their template features [M, F] (None when F_dT reads none) and weights [M]."""
-        kept = [v.subset(torch.nonzero(~v.editable)[:, 0]) for v in views]
-        points = torch.cat([v.points for v in kept])
-        weights = torch.cat([v.weights for v in kept])
-        features = torch.cat([v.features for v in kept]) if texture.cond_dim else None
+        still = [~v.editable[v.pixel] for v in views]  # [S] per view
+        points = torch.cat([v.points[m] for v, m in zip(views, still, strict=True)])
+        weights = torch.cat([v.weights[m] for v, m in zip(views, still, strict=True)])
+        features = None
+        if texture.cond_dim:
+            features = torch.cat([v.features[m] for v, m in zip(views, still, strict=True)])
         if len(points) > cfg.reg_points:
             pick = torch.randperm(len(points), generator=gen)[: cfg.reg_points].to(device)
             points, weights = points[pick], weights[pick]
