@@ -689,7 +689,8 @@ def summary_lines(s: dict) -> list[str]:
     """The numbers of the summary, one short line each."""
     f = lambda x, d=2: "n/a" if x is None else f"{x:.{d}f}"  # noqa: E731
     return [
-        f"{s['object']}, {s['views']} views, SfM poses {s['registered_views']}/{s['views']}; "
+        f"{s['object']}, {s['views']} views, {s['registered_views']}/{s['views']} posed "
+        f"({s.get('pose_source') or 'n/a'}); "
         f"template held-out PSNR {f(s['template_heldout_psnr'])} dB",
         f"semantic masks ({s['painted_part']}) held-out IoU "
         f"{f(s['semantic_mask_heldout_iou_mean'], 3)}",

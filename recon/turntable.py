@@ -536,3 +536,97 @@ def rim_depth_ratios(
         ok = rim & (hull > 0) & (depth > 0) & np.isfinite(depth)
         ratios[cam.name] = hull[ok] / depth[ok]
     return ratios
+
+
+def partner_views(cameras: list[Camera], i: int, count: int = 2) -> list[int]:
+    """Up to `count` views whose optical axes are 15-60 degrees from view i's, those nearest
+    30 degrees first: wide enough to fix depth along view i's rays, close enough to see most
+    of what view i sees."""
+    axes = np.array([c.camera_to_world[:3, 2] for c in cameras])  # [N, 3]
+    angles = np.degrees(np.arccos(np.clip(axes @ axes[i], -1.0, 1.0)))  # [N]
+    order = np.argsort(np.abs(angles - 30.0))
+    return [int(j) for j in order if 15.0 <= angles[j] <= 60.0][:count]
+
+
+def bilinear_depth(depth: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Depth [H, W] (0 = none) read at pixel coordinates u, v (any shape, pixel centres at
+    +0.5) by bilinear interpolation; NaN where any of the four neighbours has no depth or
+    lies outside the image."""
+    h, w = depth.shape
+    x, y = u - 0.5, v - 0.5
+    c, r = np.floor(x).astype(int), np.floor(y).astype(int)
+    inside = (c >= 0) & (r >= 0) & (c < w - 1) & (r < h - 1)
+    c, r = np.clip(c, 0, w - 2), np.clip(r, 0, h - 2)
+    fx, fy = x - c, y - r
+    d00, d01, d10, d11 = depth[r, c], depth[r, c + 1], depth[r + 1, c], depth[r + 1, c + 1]
+    value = (1 - fy) * ((1 - fx) * d00 + fx * d01) + fy * ((1 - fx) * d10 + fx * d11)
+    ok = inside & (d00 > 0) & (d01 > 0) & (d10 > 0) & (d11 > 0)
+    return np.where(ok, value, np.nan)
+
+
+def smooth_depth_pixels(depth: np.ndarray, mask: np.ndarray, jump: float = 0.02) -> np.ndarray:
+    """Pixels [H, W] bool inside the mask (eroded by 2) whose 3 x 3 neighbourhood spans less
+    than `jump` of their depth: away from outlines and occlusion edges."""
+    kernel = np.ones((3, 3), np.uint8)
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    has = depth > 0
+    high = cv2.dilate(depth.astype(np.float32), kernel)
+    low = cv2.erode(np.where(has, depth, np.inf).astype(np.float32), kernel)
+    return inner & has & (high - low < jump * depth)
+
+
+def consistent_depth_ratios(
+    cameras: list[Camera],
+    masks: list[np.ndarray],
+    depths: list[np.ndarray],
+    guess: float,
+    points: int = 2000,
+    span: float = 0.3,
+    steps: int = 61,
+    seed: int = 0,
+) -> dict[str, np.ndarray]:
+    """Per view name: ratios [M] (pose camera z / dataset depth) at which the view's pixels,
+    lifted along their rays by ratio x their dataset depth, land on the dataset depth of a
+    partner view (`partner_views`).
+
+    For a pixel of view i with dataset depth D and ray p (z = 1 in camera i), the point at ratio
+    k is X(k) = C_i + k D R_i p; in camera j it has depth z_j(k) and should meet view j's depth,
+    scaled alike: z_j(k) = k D_j(proj_j X(k)). The relative residual is scanned over `steps`
+    ratios spanning exp(+-span) around `guess`; a ratio is kept where it changes sign between
+    two neighbouring ratios with small residuals on both sides (a continuous surface, not an
+    occlusion edge), refined linearly, the crossing nearest `guess` when there are several.
+    Unlike the visual hull's rim (`rim_depth_ratios`, biased by the hull's voxels), this uses
+    the whole surface and every pair of overlapping views. Masks [H, W] and depths at the
+    masks' size; cameras at any size."""
+    rng = np.random.default_rng(seed)
+    ratios = np.exp(np.linspace(-span, span, steps)) * guess  # [S]
+    log_step = 2 * span / (steps - 1)
+    cams = [c.resized(m.shape[1], m.shape[0]) for c, m in zip(cameras, masks, strict=True)]
+    masked = [np.where(m, d, 0.0) for m, d in zip(masks, depths, strict=True)]
+    out = {}
+    for i, cam in enumerate(cams):
+        rows, cols = np.nonzero(smooth_depth_pixels(depths[i], masks[i]))
+        pick = rng.choice(len(rows), min(points, len(rows)), replace=False)
+        rows, cols = rows[pick], cols[pick]
+        lifted = np.linalg.inv(cam.K) @ np.stack([cols + 0.5, rows + 0.5, np.ones(len(rows))])
+        lifted = cam.camera_to_world[:3, :3] @ (lifted * depths[i][rows, cols])  # [3, M] world
+        found = []
+        for j in partner_views(cams, i):
+            other = cams[j]
+            to_cam = other.camera_to_world[:3, :3].T
+            offset = to_cam @ (cam.center - other.center)  # [3]
+            along = to_cam @ lifted  # [3, M]
+            local = offset[:, None, None] + along[:, :, None] * ratios  # [3, M, S]
+            pix = np.einsum("ab,bms->ams", other.K, local)
+            z = local[2]
+            seen = bilinear_depth(masked[j], pix[0] / pix[2], pix[1] / pix[2])  # [M, S]
+            res = np.where(z > 0, (z - ratios * seen) / (ratios * seen), np.nan)  # [M, S]
+            a, b = res[:, :-1], res[:, 1:]
+            cross = (a * b <= 0) & (np.abs(a) < 2 * log_step) & (np.abs(b) < 2 * log_step)
+            frac = np.clip(a / np.where(a != b, a - b, 1.0), 0.0, 1.0)
+            roots = np.where(cross, ratios[:-1] * np.exp(frac * log_step), np.nan)  # [M, S-1]
+            dist = np.where(cross, np.abs(np.log(roots / guess)), np.inf)
+            best = roots[np.arange(len(roots)), np.argmin(dist, axis=1)]
+            found.append(best[np.isfinite(best)])
+        out[cam.name] = np.concatenate(found) if found else np.zeros(0)
+    return out

@@ -98,8 +98,8 @@ def test_fast_demo_end_to_end_then_resumes(tmp_path, capsys):
     s = read_json(out / "demo_summary.json")
     assert s["registered_views"] == 24
     # SfM's poses, or the turntable model where the recon's self-check rejected them (its
-    # designed fallback; seen once under heavy load: global SfM's poses of the symmetric car,
-    # 0.41 px reprojection error but views out of ring order, carved an empty visual hull)
+    # designed fallback: on some machines global SfM's poses of the symmetric car, 0.41 px
+    # reprojection error but half the ring collapsed, carve an empty visual hull)
     report = read_json(out / "run" / "recon_report.json")
     rejected = report.get("sfm_self_check", {}).get("verdict") == "poor"
     assert s["pose_source"].startswith("sfm") or (s["pose_source"] == "turntable" and rejected)
@@ -116,10 +116,12 @@ def test_fast_demo_end_to_end_then_resumes(tmp_path, capsys):
     ]
     assert all(math.isfinite(s[k]) for k in numbers), {k: s[k] for k in numbers}
     # Measured (2 busy cores): edited view 0.97, held-out 0.95 vs the unedited template's 0.89;
-    # template PSNR 26 dB, masks IoU 0.93.
+    # template PSNR 28.1 dB (SfM) / 28.6 dB (turntable), masks IoU 0.90-0.93. A template under
+    # 25 dB means wrong poses or a wrong depth scale (22.7 dB when the turntable's depth scale
+    # came from the visual hull's rim alone, 3 % off).
     assert s["edited_view_silhouette_iou"] > 0.9
     assert s["edit_heldout_silhouette_iou"] > s["template_vs_gt_edit_heldout_silhouette_iou"] + 0.02
-    assert s["template_heldout_psnr"] > 22 and s["semantic_mask_heldout_iou_mean"] > 0.8
+    assert s["template_heldout_psnr"] > 25 and s["semantic_mask_heldout_iou_mean"] > 0.8
 
     # run again: every stage is skipped, the videos are not rewritten
     stamp = (out / "edit.mp4").stat().st_mtime_ns

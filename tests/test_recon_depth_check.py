@@ -101,6 +101,35 @@ def test_depth_scale_to_sfm_keeps_consistent_and_flags_inconsistent_depth(tmp_pa
     assert fit.residual > 0.2 and not fit.consistent()
 
 
+def test_consistent_depth_ratios_find_the_scale_from_a_wrong_guess():
+    """Poses in units 2.5 x the depth maps' (a sphere off the ring's axis, 12 views 30 degrees
+    apart): lifting each view's pixels by the ratio that lands them on a partner's depth finds
+    2.5 from a guess 12 % off; a scale per view (every other view's depth x 1.3) shows up as a
+    view offset; and a guess beyond the searched span finds nothing to fit."""
+    from recon.turntable import consistent_depth_ratios, partner_views
+
+    cams, _ = ring(n=12, center=np.zeros(3), axis=(0, 0, 1), radius=2.5, height=1.0, w=96, h=72)
+    cams = [c.replace(fx=90.0, fy=90.0) for c in cams]
+    centre = np.array([0.15, -0.1, 0.1])
+    depths = sphere_depths(cams, centre, 0.6)
+    masks = [d > 0 for d in depths]
+    posed = []
+    for cam in cams:
+        c2w = cam.camera_to_world.copy()
+        c2w[:3, 3] *= 2.5
+        posed.append(cam.replace(camera_to_world=c2w))
+    # ring neighbours are 30 degrees apart: partners are the views one and two steps away
+    assert sorted(partner_views(posed, 0)) == [1, 11]
+    fit = fit_depth_scale(consistent_depth_ratios(posed, masks, depths, guess=2.2), 0.025)
+    assert fit.factor == pytest.approx(2.5, rel=2e-3) and fit.consistent()
+    assert fit.points > 12 * 500
+    per_view = [d * (1.3 if i % 2 else 1.0) for i, d in enumerate(depths)]
+    fit = fit_depth_scale(consistent_depth_ratios(posed, masks, per_view, guess=2.5), 0.025)
+    assert not fit.consistent()
+    far = consistent_depth_ratios(posed, masks, depths, guess=1.0)
+    assert sum(len(v) for v in far.values()) < 100
+
+
 @pytest.fixture(scope="module")
 def small_run(tmp_path_factory):
     """A 6-view 64x48 synthetic capture with depth, ingested (cameras and depth in the run)."""
