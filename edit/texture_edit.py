@@ -40,7 +40,9 @@ graph, F_dT queried in chunks of samples):
   points (rendered depth) inside or outside the region; a pixel of another view may change
   when its surface point is near one seen inside the region; the rest, surface view K never saw
   included, keeps the template (`mask_source`; run `sine features` to reach the part's unseen
-  sides). The 3D side of L_reg (the paper's holds F_dG to zero at background points; here F_dT):
+  sides). With semantic masks, beyond the paper (`keep_seen`): a pixel whose surface point is
+  near one view K showed outside the region keeps the template too (the part's mask may reach
+  beyond what the user painted; what they saw and left stays in every view). The 3D side of L_reg (the paper's holds F_dG to zero at background points; here F_dT):
   w_reg_field ||m'(x)||^2 (weighted by the samples' rendering weights) at the samples of the
   step's unedited pixels, so F_dT's hash table and MLP cannot leak the edit's colour over the
   whole object. Beyond the paper (as geometry edits): F_dT is multiplied by a 3D gate
@@ -185,6 +187,12 @@ class TextureEditConfig(LoopOptions):
         "the painted region lifted onto the surface (lifted), or features when present (auto)",
         choices=["auto", "features", "lifted"],
     )
+    keep_seen: bool = option(
+        True,
+        "semantic masks: pixels of every view whose surface view K showed outside the painted "
+        "region keep the template (what the user saw and left unpainted stays, where the part's "
+        "semantic mask reaches beyond the painting; texture mode only)",
+    )
     region_dilate: int = option(6, "pixels the automatic editable region is grown by", low=0)
     lift_tol: float = option(
         0.02,
@@ -211,7 +219,7 @@ RUNTIME_KEYS = (*LOOP_RUNTIME_KEYS, "previews", "chunk")
 
 # Options added after edits were recorded whose default is not what those edits did: a run
 # recorded without them counts as having had these values (so it is redone, not reused).
-RECORDED_BEFORE = {"template_feature": False}
+RECORDED_BEFORE = {"template_feature": False, "keep_seen": False}
 
 
 # ---- preparation --------------------------------------------------------------------------
@@ -340,12 +348,16 @@ def editable_masker(run: RunDir, setup: TextureSetup, cfg, device, geometry=None
         if not painted.any():
             raise SineError("the editable region does not touch the object in the editing view")
         masks = SemanticMasks(feats, painted, object_mask=on_object)
+        seen = None  # view K's surface, painted or not (the template's: not for a hybrid)
+        if cfg.keep_seen and geometry is None:
+            seen = LiftedRegion.from_view(setup.view, setup.region, cfg.lift_tol)
 
         def semantic(view: ViewSamples) -> torch.Tensor:
             feats, on_obj = renderer(view.camera)
             image = view.template_rgb.reshape(*view.size, 3).clamp(0, 1).cpu().numpy()
             editable = masks.mask(feats, image, on_obj).cpu().numpy() & on_obj
-            return torch.from_numpy(editable.reshape(-1)).to(device)
+            editable = torch.from_numpy(editable.reshape(-1)).to(device)
+            return editable & ~seen.kept(view) if seen is not None else editable
 
         return semantic, "features"
     return LiftedRegion.from_view(setup.view, setup.region, cfg.lift_tol).editable, "lifted"

@@ -288,12 +288,23 @@ class LiftedRegion:
         return cls(points, inside, tol)
 
     def editable(self, view: ViewSamples) -> torch.Tensor:
-        """[P] bool pixels of `view` that may change."""
+        """[P] bool pixels of `view` that may change: their surface point is near one the
+        editing view saw inside the region."""
+        return self._seen(view, inside=True)
+
+    def kept(self, view: ViewSamples) -> torch.Tensor:
+        """[P] bool pixels of `view` whose surface point is near one the editing view saw
+        outside the region: the user saw that surface and did not paint it."""
+        return self._seen(view, inside=False)
+
+    def _seen(self, view: ViewSamples, inside: bool) -> torch.Tensor:
+        """[P] bool pixels whose surface point's nearest lifted point lies within `tol` and is
+        inside (or outside) the region."""
         from scipy.spatial import cKDTree
 
-        editable = np.zeros(view.n_pixels, bool)
+        out = np.zeros(view.n_pixels, bool)
         points, pixels = surface_points(view)
         if len(pixels) and len(self.points):
             dist, nearest = cKDTree(self.points).query(points)
-            editable[pixels] = (dist <= self.tol) & self.inside[nearest]
-        return torch.from_numpy(editable).to(view.opacity.device)
+            out[pixels] = (dist <= self.tol) & (self.inside[nearest] == inside)
+        return torch.from_numpy(out).to(view.opacity.device)

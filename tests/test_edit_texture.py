@@ -292,8 +292,9 @@ def test_sample_view_matches_the_renderer(tiny_fitted_run, features):
 
 def test_lifted_region_follows_the_painted_half_and_keeps_the_unseen_side(tiny_fitted_run):
     """The left half of the editing view painted: in that view the lifted mask is the painted
-    object pixels; from the opposite side (surface the editing view never saw) nothing may
-    change; the background never."""
+    object pixels and the kept mask (seen, not painted) the other object pixels; from the
+    opposite side (surface the editing view never saw) nothing may change and nothing is kept
+    for having been seen; the background neither."""
     run = RunDir(tiny_fitted_run)
     template, background, fit_cfg = load_fitted(run.root)
     sampler = make_sampler(fit_cfg, run)
@@ -308,8 +309,50 @@ def test_lifted_region_follows_the_painted_half_and_keeps_the_unseen_side(tiny_f
     editable = lifted.editable(view).reshape(64, 64).numpy()
     assert editable[obj & region].all() and not editable[obj & ~region].any()
     assert not editable[~obj].any()
+    kept = lifted.kept(view).reshape(64, 64).numpy()
+    assert kept[obj & ~region].all() and not kept[obj & region].any() and not kept[~obj].any()
     far = sample_view(frames[(VIEW + 4) % len(frames)], template, sampler, background)
     assert lifted.editable(far).float().mean() < 0.05
+    assert lifted.kept(far).float().mean() < 0.05
+
+
+def test_semantic_masks_keep_what_view_k_saw_unpainted(tiny_fitted_run, tmp_path_factory):
+    """The front half of the body painted in view K: the body's semantic mask reaches its
+    unpainted half too; with keep_seen that half keeps the template in view K and wherever
+    another view sees it, while the far side (never seen by view K) is as without it."""
+    from feature_run_helpers import TINY_FEATURES
+
+    from edit.feature_field_fit import FeaturesConfig, distill_features
+    from edit.texture_edit import TextureSetup, editable_masker
+
+    root = tmp_path_factory.mktemp("keep_seen") / "run"
+    shutil.copytree(tiny_fitted_run, root, ignore=shutil.ignore_patterns("edits"))
+    distill_features(root, FeaturesConfig(**TINY_FEATURES), progress=False)
+    run = RunDir(root)
+    template, background, fit_cfg = load_fitted(run.root)
+    sampler = make_sampler(fit_cfg, run)
+    frames = run.load_cameras().frames
+    camera = frames[VIEW]
+    body = read_label_map(root / "labels" / camera.name) == PART
+    cols = np.nonzero(body)[1]
+    region = body & (np.arange(camera.width) < np.median(cols))[None, :]
+    view = sample_view(camera, template, sampler, background)
+    setup = TextureSetup(camera, view, None, np.zeros((8, 8, 3), np.float32), region, False)
+    masks = {}
+    for keep in (False, True):
+        cfg = TextureEditConfig(keep_seen=keep)
+        masker, source = editable_masker(run, setup, cfg, torch.device("cpu"))
+        assert source == "features"
+        masks[keep] = [
+            masker(sample_view(frames[k], template, sampler, background)).numpy()
+            for k in (VIEW, (VIEW + 4) % len(frames))
+        ]
+    (k_off, far_off), (k_on, far_on) = masks[False], masks[True]
+    unpainted = (body & ~region).reshape(-1)
+    assert k_off[unpainted].mean() > 0.2  # the semantic mask reaches the unpainted half
+    assert not k_on[unpainted].any() and not (k_on & ~k_off).any()
+    assert k_on[region.reshape(-1)].mean() > 0.8 * k_off[region.reshape(-1)].mean()
+    assert np.mean(far_on != far_off) < 0.05 and far_off.sum() > 20
 
 
 # ---- a tiny texture edit end to end ---------------------------------------------------------
