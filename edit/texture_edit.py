@@ -42,10 +42,11 @@ graph, F_dT queried in chunks of samples):
   included, keeps the template (`mask_source`; run `sine features` to reach the part's unseen
   sides). With semantic masks, beyond the paper (`keep_seen`): a pixel whose surface point is
   near one view K showed outside the region keeps the template too (the part's mask may reach
-  beyond what the user painted; what they saw and left stays in every view). The 3D side of L_reg (the paper's holds F_dG to zero at background points; here F_dT):
-  w_reg_field ||m'(x)||^2 (weighted by the samples' rendering weights) at the samples of the
-  step's unedited pixels, so F_dT's hash table and MLP cannot leak the edit's colour over the
-  whole object. Beyond the paper (as geometry edits): F_dT is multiplied by a 3D gate
+  beyond what the user painted; what they saw and left stays in every view). The 3D side of
+  L_reg (the paper's holds F_dG to zero at background points; here F_dT): w_reg_field
+  ||m'(x)||^2 (weighted by the samples' rendering weights) at the samples of the step's
+  unedited pixels, so F_dT's hash table and MLP cannot leak the edit's colour over the whole
+  object. Beyond the paper (as geometry edits): F_dT is multiplied by a 3D gate
   (`edit.edit_gate.EditGate`) that is 1 near the samples of view K's region and of every
   training camera's editable pixels and 0 farther than `gate_outer`: there the edit is exactly
   the template; rendered into each view, the same gate is the compositor's g (its residual acts
