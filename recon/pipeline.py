@@ -649,18 +649,18 @@ class Pipeline:
         from recon.poses import fit_depth_scale
         from recon.turntable import consistent_depth_ratios, rim_depth_ratios
 
-        masks = [read_mask(self.run.mask_path(c.name)) for c in frames]
-        paths = [self.run.depth_path(c.name) for c in frames]
-        tolerance = self.cfg.dataset_depth_tolerance
-        rim = fit_depth_scale(rim_depth_ratios(frames, masks, paths), tolerance)
-        if rim.factor is None:
-            return rim
-        depths = []
-        for mask, path in zip(masks, paths, strict=True):
-            depth = read_depth(path)
+        masks, depths = [], []
+        for cam in frames:
+            mask = read_mask(self.run.mask_path(cam.name))
+            depth = read_depth(self.run.depth_path(cam.name))
             if depth.shape != mask.shape:
                 depth = cv2.resize(depth, mask.shape[::-1], interpolation=cv2.INTER_NEAREST)
+            masks.append(mask)
             depths.append(depth)
+        tolerance = self.cfg.dataset_depth_tolerance
+        rim = fit_depth_scale(rim_depth_ratios(frames, masks, depths), tolerance)
+        if rim.factor is None:
+            return rim
         fit = fit_depth_scale(consistent_depth_ratios(frames, masks, depths, rim.factor), tolerance)
         return fit if fit.factor is not None else rim
 

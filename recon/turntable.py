@@ -516,22 +516,19 @@ def choose_seed(models: list, names: list[str], masks: list[np.ndarray], thresho
 
 
 def rim_depth_ratios(
-    cameras: list[Camera], masks: list[np.ndarray], depth_paths
+    cameras: list[Camera], masks: list[np.ndarray], depths: list[np.ndarray]
 ) -> dict[str, np.ndarray]:
     """Per view name: the ratios [M] of the visual hull's depth to the capture's depth on the
-    rim of the mask (2 pixels wide), where the hull touches the object."""
+    rim of the mask (2 pixels wide), where the hull touches the object. Masks [H, W] and depths
+    at the masks' size."""
     from recon.depth import raycast_views, visual_hull_mesh
-    from render.io import read_depth
 
     verts, faces, _ = visual_hull_mesh(cameras, masks, resolution=96)
     ratios = {}
     kernel = np.ones((5, 5), np.uint8)
-    for cam, mask, hull, path in zip(
-        cameras, masks, raycast_views(verts, faces, cameras), depth_paths, strict=True
+    for cam, mask, hull, depth in zip(
+        cameras, masks, raycast_views(verts, faces, cameras), depths, strict=True
     ):
-        depth = read_depth(path)
-        if depth.shape != mask.shape:
-            depth = cv2.resize(depth, mask.shape[::-1], interpolation=cv2.INTER_NEAREST)
         rim = mask & ~(cv2.erode(mask.astype(np.uint8), kernel) > 0)
         ok = rim & (hull > 0) & (depth > 0) & np.isfinite(depth)
         ratios[cam.name] = hull[ok] / depth[ok]
