@@ -17,7 +17,8 @@ against the ground truth:
 - unedited_psnr: the edit vs the template's own rendering where the GT edit did not change the
   view (on the object): does the rest stay intact?
 Writes DIR/results.json ({"cases": [...]}) and DIR/<object>_sheet.png (rows: held-out views;
-columns: template | each method | ground truth). `--quick`: toycar only, ours + naive, fewer steps.
+columns: template | each method | ground truth). `--quick`: toycar only, ours + naive, fewer steps
+(--objects / --methods still choose).
 
 `--reference OBJECT`: the unaligned case: each object's part (GT label in the editing view as the
 region) takes the look of a render of OBJECT (e.g. avocado) given as `--reference`; writes the
@@ -336,10 +337,18 @@ def main() -> int:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("--out", type=Path, required=True, help="work and results folder")
-    ap.add_argument("--quick", action="store_true", help="toycar only, ours + naive, fewer steps")
-    ap.add_argument("--objects", nargs="+", default=["toycar", "figurine", "spot"])
     ap.add_argument(
-        "--methods", nargs="+", default=["ours", "naive", "no_compositor"], choices=list(VARIANTS)
+        "--quick",
+        action="store_true",
+        help="toycar only, fewer steps, ours + naive (unless --objects / --methods are given)",
+    )
+    ap.add_argument("--objects", nargs="+", default=None, help="default: toycar figurine spot")
+    ap.add_argument(
+        "--methods",
+        nargs="+",
+        default=None,
+        choices=list(VARIANTS),
+        help="default: ours naive no_compositor",
     )
     ap.add_argument("--size", type=int, default=256, help="image size (square)")
     ap.add_argument("--views", type=int, default=36, help="views on the ring")
@@ -374,8 +383,11 @@ def main() -> int:
         memory_bench(args.memory, args.sizes, args.out)
         return 0
     if args.quick:
-        args.objects, args.methods = ["toycar"], ["ours", "naive"]
+        args.objects = args.objects or ["toycar"]
+        args.methods = args.methods or ["ours", "naive"]
         args.iterations = args.iterations or 300
+    args.objects = args.objects or ["toycar", "figurine", "spot"]
+    args.methods = args.methods or ["ours", "naive", "no_compositor"]
     if args.reference:
         from render.io import write_json
 
