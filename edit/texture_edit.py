@@ -167,6 +167,16 @@ class TextureEditConfig(LoopOptions):
     w_structure: float = option(
         2e-4, "weight of L_tex's self-similarity term (structure of the template)", low=0
     )
+    w_color: float = option(
+        1.0,
+        "--reference only: weight of the colour term, the sliced Wasserstein distance between "
+        "the colours of the edited part in the L_tex views and the reference photo's object "
+        "colours (its opaque pixels; all pixels of a photo without alpha; 0: off)",
+        low=0,
+    )
+    color_directions: int = option(
+        16, "colour term: random directions in RGB per step it is measured along", low=1
+    )
     tex_views: int = option(1, "views around the object with L_tex and L_reg per step", low=0)
     tex_size: int = option(128, "longer side (px) of the L_tex views' renders", low=16)
     jitter_deg: float = option(
@@ -220,7 +230,7 @@ RUNTIME_KEYS = (*LOOP_RUNTIME_KEYS, "previews", "chunk")
 
 # Options added after edits were recorded whose default is not what those edits did: a run
 # recorded without them counts as having had these values (so it is redone, not reused).
-RECORDED_BEFORE = {"template_feature": False, "keep_seen": False}
+RECORDED_BEFORE = {"template_feature": False, "keep_seen": False, "w_color": 0.0}
 
 
 # ---- preparation --------------------------------------------------------------------------
@@ -234,17 +244,23 @@ class TextureSetup:
     style_image: np.ndarray  # [H', W', 3] the image whose CLS L_tex aims at
     region: np.ndarray  # [H, W] bool
     reference: bool
+    reference_colors: np.ndarray | None = None  # [M, 3] the reference's object pixels
 
 
-def read_reference(path, background) -> np.ndarray:
-    """A reference photo [H, W, 3]; its transparent pixels show the run's background."""
+def read_reference(path, background) -> tuple[np.ndarray, np.ndarray]:
+    """A reference photo [H, W, 3], its transparent pixels showing the run's background, and its
+    object's colours [M, 3]: the pixels of alpha > 0.5, or every pixel without alpha."""
     path = Path(path)
     if not path.is_file():
         raise SineError(f"reference image {path} does not exist")
     rgb, alpha = read_image_rgba(path)
+    colors = rgb.reshape(-1, 3)
     if alpha is not None:
+        colors = rgb[alpha > 0.5]
         rgb = rgb * alpha[..., None] + np.asarray(background, np.float32) * (1 - alpha[..., None])
-    return rgb.astype(np.float32)
+    if len(colors) == 0:
+        raise SineError(f"reference image {path} is fully transparent: it shows no object")
+    return rgb.astype(np.float32), colors.astype(np.float32)
 
 
 def pick_view(run: RunDir, view: int):
@@ -283,7 +299,9 @@ def prepare(
             editable &= tgt.silhouette > 0.5
         if not editable.any():
             raise SineError(f"the region to recolour does not touch the object in view {view}")
-    style = read_reference(reference, background) if reference is not None else tgt.rgb
+    style, reference_colors = tgt.rgb if tgt is not None else None, None
+    if reference is not None:
+        style, reference_colors = read_reference(reference, background)
     samples.editable = torch.from_numpy(editable.reshape(-1)).to(device)
     if tgt is not None:
         write_image(out / "target.png", tgt.rgb)
@@ -298,6 +316,7 @@ def prepare(
         style,
         editable,
         reference is not None,
+        reference_colors,
     )
 
 
@@ -609,7 +628,7 @@ def texture_steps(
     feature_geometry: the scene of `template` and `sampler` when it is not the run's template
     (a hybrid edit's `deformed_template`): the semantic masks' feature maps are rendered on it."""
     from edit.dino import load_dino
-    from edit.texture_loss import TextureLoss
+    from edit.texture_loss import TextureLoss, sliced_wasserstein
 
     texture = editing.texture
     use_tex = cfg.tex_views > 0 and (cfg.w_cls > 0 or cfg.w_structure > 0)
@@ -620,6 +639,9 @@ def texture_steps(
         style = torch.from_numpy(setup.style_image).permute(2, 0, 1).to(device)
         tex_loss = TextureLoss(dino, style, cfg.w_cls, cfg.w_structure)
     masker, mask_source = editable_masker(run, setup, cfg, device, feature_geometry)
+    reference_colors = None
+    if use_tex and setup.reference_colors is not None and cfg.w_color > 0:
+        reference_colors = torch.from_numpy(setup.reference_colors).to(device)
 
     def make_view(camera) -> ViewSamples:
         view = sample_view(
@@ -704,6 +726,10 @@ def texture_steps(
     def step(i: int) -> dict[str, torch.Tensor]:
         texture.set_progress(i / max(1.0, cfg.coarse_to_fine * cfg.iterations))
         views, kinds = [], []
+        dirs = None
+        if reference_colors is not None:  # the colour term's directions of this step
+            dirs = torch.randn(cfg.color_directions, 3, generator=gen).to(device)
+            dirs = dirs / dirs.norm(dim=1, keepdim=True).clamp_min(1e-12)
         if target is not None:
             views.append(crop())
             kinds.append("edit")
@@ -727,6 +753,12 @@ def texture_steps(
                     tex = tex_loss.terms(chw, template_sim=view.template_sim)
                     add("cls", cfg.w_cls * tex["cls"])
                     add("structure", cfg.w_structure * tex["structure"])
+                    if reference_colors is not None:
+                        colors = image[view.editable]
+                        add(
+                            "color",
+                            cfg.w_color * sliced_wasserstein(colors, reference_colors, dirs),
+                        )
             return sum(terms.values()), terms
 
         # I_m dropout: some crops of view K go through the compositor without F_dT's colours, so

@@ -1,4 +1,5 @@
-"""L_tex: zero on identical inputs, grows with appearance change, gradient reaches the image."""
+"""L_tex: zero on identical inputs, grows with appearance change, gradient reaches the image;
+the colour term (sliced Wasserstein) by hand."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import pytest
 import torch
 
 from edit import dino as D
-from edit.texture_loss import TextureLoss
+from edit.texture_loss import TextureLoss, sliced_wasserstein
 
 
 @pytest.fixture(scope="module")
@@ -88,3 +89,46 @@ def test_gradient_flows_to_the_image(dino):
     same = base.clone().requires_grad_(True)
     TextureLoss(dino, base)(same, template=base).backward()
     assert torch.isfinite(same.grad).all()
+
+
+AXES = torch.eye(3)
+
+
+def test_sliced_wasserstein_by_hand():
+    gen = torch.Generator().manual_seed(0)
+    reference = torch.rand(500, 3, generator=gen)
+    # the same colours in another order: zero; each twice: nearly (quantiles interpolate)
+    shuffled = reference[torch.randperm(500, generator=gen)]
+    assert float(sliced_wasserstein(shuffled, reference, AXES)) < 1e-12
+    twice = torch.cat([reference, reference])
+    assert float(sliced_wasserstein(twice, reference, AXES)) < 1e-5
+    # every colour 0.1 redder: along the axes (0.1^2 + 0 + 0) / 3
+    redder = reference + torch.tensor([0.1, 0.0, 0.0])
+    assert float(sliced_wasserstein(redder, reference, AXES)) == pytest.approx(0.01 / 3, rel=1e-4)
+    # two colours against a reference of one black and three white pixels, along red:
+    # levels 0.25 and 0.75 fall on the sorted reference (0, 1, 1, 1) at positions 0.5 and 2.5
+    # -> quantiles 0.5 and 1; grey 0.5 and white 1 match them, black 0 and white 1 miss by 0.5
+    ref = torch.tensor([[0.0, 0, 0], [1, 1, 1], [1, 1, 1], [1, 1, 1]])
+    red = AXES[:1]
+    grey_white = torch.tensor([[0.5, 0.5, 0.5], [1, 1, 1]])
+    assert float(sliced_wasserstein(grey_white, ref, red)) == pytest.approx(0.0)
+    black_white = torch.tensor([[0.0, 0, 0], [1, 1, 1]])
+    assert float(sliced_wasserstein(black_white, ref, red)) == pytest.approx(0.25 / 2)
+
+
+def test_sliced_wasserstein_pulls_colours_towards_the_reference():
+    gen = torch.Generator().manual_seed(1)
+    reference = torch.rand(300, 3, generator=gen) * 0.2 + torch.tensor([0.1, 0.4, 0.1])  # greens
+    colours = torch.rand(200, 3, generator=gen) * 0.2 + torch.tensor([0.7, 0.1, 0.1])  # reds
+    colours.requires_grad_(True)
+    directions = torch.nn.functional.normalize(torch.randn(16, 3, generator=gen), dim=1)
+    before = sliced_wasserstein(colours, reference, directions)
+    before.backward()
+    assert colours.grad is not None and colours.grad.abs().sum() > 0
+    with torch.no_grad():
+        after = sliced_wasserstein(
+            colours - 0.5 * colours.grad / colours.grad.abs().max(), reference, directions
+        )
+    assert float(after) < float(before)
+    empty = sliced_wasserstein(torch.zeros(0, 3), reference, directions)
+    assert float(empty) == 0.0
