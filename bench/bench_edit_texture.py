@@ -291,6 +291,35 @@ def reference_photo(name: str, out: Path, size: int) -> Path:
     return photo
 
 
+def reference_color_distances(syn: Path, previews: list[Path], photo: Path) -> dict:
+    """How far the edited part's colours are from the photo's object colours, before and after:
+    the sliced Wasserstein distance (64 fixed random directions, squared, x 1000) between the
+    part's pixels in the previews (template | edit; the part's GT label in each view) and the
+    photo's opaque pixels."""
+    import torch
+
+    from edit.texture_loss import sliced_wasserstein
+    from render.io import read_image, read_image_rgba, read_json, read_label_map
+
+    rgb, alpha = read_image_rgba(photo)
+    reference = torch.from_numpy(rgb[alpha > 0.5])
+    part = read_json(syn / "edits" / "texture" / "edit.json")["part"]
+    gen = torch.Generator().manual_seed(0)
+    directions = torch.nn.functional.normalize(torch.randn(64, 3, generator=gen), dim=1)
+    before, after = [], []
+    for path in previews:
+        pair = read_image(path)
+        w = pair.shape[1] // 2
+        inside = read_label_map(syn / "labels" / path.name) == part
+        for half, out in ((pair[:, :w], before), (pair[:, w:], after)):
+            colours = torch.from_numpy(np.ascontiguousarray(half[inside]))
+            out.append(1000 * float(sliced_wasserstein(colours, reference, directions)))
+    return {
+        "color_distance_before": float(np.mean(before)),
+        "color_distance_after": float(np.mean(after)),
+    }
+
+
 def unaligned(args, obj: str, reference: str) -> dict:
     """Ours with --reference: the object's part (its GT label in the editing view) takes the
     look of the reference photo; CLS distances to the photo before / after on 4 views."""
@@ -316,12 +345,14 @@ def unaligned(args, obj: str, reference: str) -> dict:
     previews = sorted((run.edit(name) / "previews").glob("*.png"))
     sheet = np.concatenate([read_image(p) for p in previews], axis=0)
     write_image(args.out / f"{obj}_{name}_sheet.png", sheet)
+    colors = reference_color_distances(syn, previews, photo)
     case = {
         "object": obj,
         "reference": reference,
         "edit_view": k,
         "cls_distance_before": m["preview_cls_distance_before"],
         "cls_distance_after": m["preview_cls_distance_after"],
+        **colors,
         "unedited_view_psnr": m.get("unedited_view_psnr"),
         "mask_source": m.get("mask_source"),
         "iterations": m["iterations"],

@@ -467,11 +467,56 @@ def test_texture_baselines_and_scene(texture_run):
     assert colours.shape == vertices.shape and colours.min() >= 0 and colours.max() <= 1
 
 
+def test_reference_edit_takes_the_photos_colours(texture_run):
+    """Unaligned case: the part takes the colours of the photo's opaque pixels (the colour term;
+    the transparent pixels' magenta does not count), the rest of the object stays."""
+    from edit.texture_loss import sliced_wasserstein
+
+    run, _ = texture_run
+    yy, xx = np.mgrid[0:64, 0:64] / 63.0
+    disc = (xx - 0.5) ** 2 + (yy - 0.5) ** 2 < 0.16
+    green = np.stack([0.1 + 0.1 * xx, 0.5 + 0.2 * yy, 0.1 + 0 * xx], axis=-1)
+    photo = np.where(disc[..., None], green, [1.0, 0.0, 1.0]).astype(np.float32)
+    write_rgba(run / "photo.png", photo, disc.astype(np.float32))
+    cfg = TextureEditConfig(**TINY_TEXTURE_EDIT)
+    run_texture_edit(
+        run,
+        VIEW,
+        None,
+        "photo",
+        cfg,
+        region=run / "region.png",
+        reference=run / "photo.png",
+        progress=False,
+    )
+    log = json.loads((run / "edits" / "photo" / "log.json").read_text())
+    # the colour term is logged every step (0 when a step's view does not see the part)
+    assert all("color" in e and "photometric" not in e for e in log)
+    assert max(e["color"] for e in log) > 0
+    frames = RunDir(run).load_cameras().frames
+    template, edit = load_scene(run, device="cpu"), load_scene(run, edit="photo", device="cpu")
+    reference = torch.from_numpy(green[disc].astype(np.float32))
+    for k in (VIEW, OTHER):
+        part = read_label_map(run / "labels" / frames[k].name) == PART
+        before = template.render_view(frames[k])
+        after = edit.render_view(frames[k])["rgb"]
+        before_d, after_d = (
+            float(sliced_wasserstein(torch.from_numpy(image[part]), reference, torch.eye(3)))
+            for image in (before["rgb"], after)
+        )
+        closer, factor = (0.5, 3) if k == VIEW else (0.85, 1.5)  # OTHER: part of what VIEW saw
+        assert after_d < closer * before_d, (k, after_d, before_d)
+        change = np.abs(after - before["rgb"]).sum(-1)
+        rest = (before["opacity"] > 0.5) & ~part
+        assert change[part].mean() > factor * change[rest].mean(), k
+
+
 def test_texture_cli_runs_and_errors_are_one_line(texture_run, capsys):
     run, _ = texture_run
     base = ["edit", str(run), "--view", str(VIEW), "--mode", "texture", "--quiet"]
     tiny = ["--iterations", "2", "--tex-size", "32", "--patch-size", "16", "--previews", "0"]
     target, region = str(run / "target.png"), str(run / "region.png")
+    write_rgba(run / "clear.png", np.zeros((8, 8, 3), np.float32), np.zeros((8, 8), np.float32))
     capsys.readouterr()
     assert (
         sine_cli.main(base + ["--target", target, "--region", region, "--name", "cli"] + tiny) == 0
@@ -484,6 +529,7 @@ def test_texture_cli_runs_and_errors_are_one_line(texture_run, capsys):
         (base + ["--target", target, "--mask", region], "--mask is for --mode geometry"),
         (["edit", str(run), "--view", "0", "--reference", target, "--quiet"], "--reference is for"),
         (base + ["--reference", str(run / "nope.png")], "does not exist"),
+        (base + ["--reference", str(run / "clear.png")], "fully transparent"),
     ):
         assert sine_cli.main(args) == 2
         err = capsys.readouterr().err.strip()
