@@ -156,7 +156,7 @@ def _settings(view, targets, reference, mask, regions, gcfg, tcfg) -> dict:
     """What the edit depends on (the Trainer retrains when any of it changes)."""
     geometry_target, texture_target, one = targets
     texture = input_digests(texture_target, None, regions[1])
-    return {
+    settings = {
         "mode": "hybrid",
         "view": view,
         "one_target": one,
@@ -169,6 +169,9 @@ def _settings(view, targets, reference, mask, regions, gcfg, tcfg) -> dict:
         "reference_sha256": None if reference is None else file_sha256(reference),
         **_options(gcfg, tcfg),
     }
+    if reference is None:  # the colour term is off without a reference photo (recorded so)
+        settings["texture.w_color"] = 0.0
+    return settings
 
 
 def _options(gcfg, tcfg) -> dict:

@@ -429,6 +429,8 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
         "reference_sha256": None if reference is None else file_sha256(reference),
         **to_dict(cfg),
     }
+    if reference is None:  # the colour term is off without a reference photo (recorded so)
+        settings["w_color"] = 0.0
     trainer = Trainer(
         out,
         f"edit {out.name}",

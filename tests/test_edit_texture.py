@@ -427,9 +427,18 @@ def test_interrupted_texture_edit_resumes_bit_exactly(texture_run):
         for k in full[part]:
             assert torch.equal(full[part][k], resumed[part][k]), (part, k)
     assert run_texture_edit(*args, **kwargs)["skipped"]
+    # an edit from a repainted view recorded before the reference photos' colour term existed
+    # is still the same edit (the term is off without a reference): reused, not redone
+    path = run / "edits" / "resumed" / "checkpoint.pt"
+    saved = torch.load(path, weights_only=True)
+    recorded = json.loads(saved["config"])
+    assert recorded["w_color"] == 0.0
+    del recorded["w_color"]
+    saved["config"] = json.dumps(recorded)
+    torch.save(saved, path)
+    assert run_texture_edit(*args, **kwargs)["skipped"]
     # an edit recorded before F_dT read the template's feature had a position-only F_dT: it is
     # redone with the new default, not reused (nor resumed into a field of another shape)
-    path = run / "edits" / "resumed" / "checkpoint.pt"
     saved = torch.load(path, weights_only=True)
     recorded = json.loads(saved["config"])
     del recorded["template_feature"]
