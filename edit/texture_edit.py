@@ -34,7 +34,11 @@ graph, F_dT queried in chunks of samples):
   copies turned by a random rotation of `jitter_deg`; rendered at `tex_size` px, DINO resizes
   them to 224): L_tex = w_cls ||cls(I_t) - cls(I)|| + w_structure ||S(I_o) - S(I)||_F
   (`edit.texture_loss`; I_t the target, or the reference photo) and L_reg on the pixels outside
-  the edited part. The edited part of a view comes from the semantic masks (K-means of the DINO
+  the edited part; with a reference photo, beyond the paper, the colour term w_color
+  SW(I[part], photo) pulls the edited part's colours to the photo's object colours (its opaque
+  pixels; squared sliced Wasserstein distance of the two colour distributions, so shading and
+  the template's structure stay: the CLS term alone moves DINO's token but barely the colours).
+  The edited part of a view comes from the semantic masks (K-means of the DINO
   feature field, as `sine masks`) when RUN/features exists, else from the painted region lifted
   onto the surface (`edit.texture_views.LiftedRegion`): view K's object pixels become surface
   points (rendered depth) inside or outside the region; a pixel of another view may change
@@ -231,6 +235,8 @@ RUNTIME_KEYS = (*LOOP_RUNTIME_KEYS, "previews", "chunk")
 # Options added after edits were recorded whose default is not what those edits did: a run
 # recorded without them counts as having had these values (so it is redone, not reused).
 RECORDED_BEFORE = {"template_feature": False, "keep_seen": False, "w_color": 0.0}
+
+REFERENCE_COLORS = 65536  # pixels of a reference photo the colour term compares with, at most
 
 
 # ---- preparation --------------------------------------------------------------------------
@@ -643,7 +649,11 @@ def texture_steps(
     masker, mask_source = editable_masker(run, setup, cfg, device, feature_geometry)
     reference_colors = None
     if use_tex and setup.reference_colors is not None and cfg.w_color > 0:
-        reference_colors = torch.from_numpy(setup.reference_colors).to(device)
+        reference_colors = torch.from_numpy(setup.reference_colors)
+        if len(reference_colors) > REFERENCE_COLORS:  # a fixed sample: sorted every step
+            pick = torch.randperm(len(reference_colors), generator=torch.Generator().manual_seed(0))
+            reference_colors = reference_colors[pick[:REFERENCE_COLORS]]
+        reference_colors = reference_colors.to(device)
 
     def make_view(camera) -> ViewSamples:
         view = sample_view(
