@@ -298,11 +298,11 @@ def reference_color_distances(syn: Path, previews: list[Path], photo: Path) -> d
     photo's opaque pixels."""
     import torch
 
+    from edit.texture_edit import read_reference
     from edit.texture_loss import sliced_wasserstein
-    from render.io import read_image, read_image_rgba, read_json, read_label_map
+    from render.io import read_image, read_json, read_label_map
 
-    rgb, alpha = read_image_rgba(photo)
-    reference = torch.from_numpy(rgb[alpha > 0.5])
+    reference = torch.from_numpy(read_reference(photo, (1.0, 1.0, 1.0))[1])
     part = read_json(syn / "edits" / "texture" / "edit.json")["part"]
     gen = torch.Generator().manual_seed(0)
     directions = torch.nn.functional.normalize(torch.randn(64, 3, generator=gen), dim=1)

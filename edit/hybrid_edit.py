@@ -114,7 +114,7 @@ def run_hybrid_edit(
     steps' region (default: `region`); `stop_at`: stop after that many steps of both phases
     together (as if interrupted)."""
     gcfg = geometry_cfg or GeometryEditConfig()
-    tcfg = texture_cfg or TextureEditConfig()
+    tcfg = texture_edit.options_in_effect(texture_cfg or TextureEditConfig(), reference)
     validate(gcfg)
     validate(tcfg)
     targets = hybrid_targets(target, target_geometry, target_texture, reference)
@@ -156,7 +156,7 @@ def _settings(view, targets, reference, mask, regions, gcfg, tcfg) -> dict:
     """What the edit depends on (the Trainer retrains when any of it changes)."""
     geometry_target, texture_target, one = targets
     texture = input_digests(texture_target, None, regions[1])
-    settings = {
+    return {
         "mode": "hybrid",
         "view": view,
         "one_target": one,
@@ -169,9 +169,6 @@ def _settings(view, targets, reference, mask, regions, gcfg, tcfg) -> dict:
         "reference_sha256": None if reference is None else file_sha256(reference),
         **_options(gcfg, tcfg),
     }
-    if reference is None:  # the colour term is off without a reference photo (recorded so)
-        settings["texture.w_color"] = 0.0
-    return settings
 
 
 def _options(gcfg, tcfg) -> dict:

@@ -66,7 +66,7 @@ from __future__ import annotations
 
 import copy
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -255,7 +255,8 @@ class TextureSetup:
 
 def read_reference(path, background) -> tuple[np.ndarray, np.ndarray]:
     """A reference photo [H, W, 3], its transparent pixels showing the run's background, and its
-    object's colours [M, 3]: the pixels of alpha > 0.5, or every pixel without alpha."""
+    object's colours [M, 3]: the pixels of alpha > 0.5, or every pixel without alpha (at most
+    REFERENCE_COLORS of them, a fixed random sample)."""
     path = Path(path)
     if not path.is_file():
         raise SineError(f"reference image {path} does not exist")
@@ -266,7 +267,15 @@ def read_reference(path, background) -> tuple[np.ndarray, np.ndarray]:
         rgb = rgb * alpha[..., None] + np.asarray(background, np.float32) * (1 - alpha[..., None])
     if len(colors) == 0:
         raise SineError(f"reference image {path} is fully transparent: it shows no object")
+    if len(colors) > REFERENCE_COLORS:  # a fixed sample: the colour term sorts it every step
+        colors = colors[np.random.default_rng(0).permutation(len(colors))[:REFERENCE_COLORS]]
     return rgb.astype(np.float32), colors.astype(np.float32)
+
+
+def options_in_effect(cfg: TextureEditConfig, reference) -> TextureEditConfig:
+    """`cfg` as it acts on an edit: the colour term is off without a reference photo (and is
+    recorded so: edits from a repainted view made before it existed are reused, not redone)."""
+    return cfg if reference is not None else replace(cfg, w_color=0.0)
 
 
 def pick_view(run: RunDir, view: int):
@@ -403,7 +412,7 @@ def run_texture_edit(
     stop_at: int | None = None,
 ) -> dict:
     """Learns a texture edit into RUN/edits/NAME; returns its metrics (resumes when re-run)."""
-    cfg = cfg or TextureEditConfig()
+    cfg = options_in_effect(cfg or TextureEditConfig(), reference)
     validate(cfg)
     if target is None and reference is None:
         raise SineError("a texture edit needs --target (view K repainted) or --reference (a photo)")
@@ -435,8 +444,6 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
         "reference_sha256": None if reference is None else file_sha256(reference),
         **to_dict(cfg),
     }
-    if reference is None:  # the colour term is off without a reference photo (recorded so)
-        settings["w_color"] = 0.0
     trainer = Trainer(
         out,
         f"edit {out.name}",
@@ -649,11 +656,7 @@ def texture_steps(
     masker, mask_source = editable_masker(run, setup, cfg, device, feature_geometry)
     reference_colors = None
     if use_tex and setup.reference_colors is not None and cfg.w_color > 0:
-        reference_colors = torch.from_numpy(setup.reference_colors)
-        if len(reference_colors) > REFERENCE_COLORS:  # a fixed sample: sorted every step
-            pick = torch.randperm(len(reference_colors), generator=torch.Generator().manual_seed(0))
-            reference_colors = reference_colors[pick[:REFERENCE_COLORS]]
-        reference_colors = reference_colors.to(device)
+        reference_colors = torch.from_numpy(setup.reference_colors).to(device)
 
     def make_view(camera) -> ViewSamples:
         view = sample_view(
@@ -740,8 +743,8 @@ def texture_steps(
         views, kinds = [], []
         dirs = None
         if reference_colors is not None:  # the colour term's directions of this step
-            dirs = torch.randn(cfg.color_directions, 3, generator=gen).to(device)
-            dirs = dirs / dirs.norm(dim=1, keepdim=True).clamp_min(1e-12)
+            dirs = nn.functional.normalize(torch.randn(cfg.color_directions, 3, generator=gen))
+            dirs = dirs.to(device)
         if target is not None:
             views.append(crop())
             kinds.append("edit")
