@@ -23,7 +23,8 @@ columns: template | each method | ground truth). `--quick`: toycar only, ours + 
 `--reference OBJECT`: the unaligned case: each object's part (GT label in the editing view as the
 region) takes the look of a render of OBJECT (e.g. avocado) given as `--reference`; writes the
 before/after previews of 4 views as DIR/<object>_reference_OBJECT_sheet.png and the DINO CLS
-distance to the photo before / after into DIR/reference.json.
+distance to the photo before / after into DIR/reference.json. `--reference-backdrop R,G,B`
+gives it as a photo without alpha on a plain backdrop (what `--reference-mask` keys).
 
 `--memory RUN`: peak memory of one texture step (one L_tex view at each of --sizes px, DINO at 224,
 compositor, L_reg) with deferred back-propagation (tiles of 128 px, F_dT on at most 32768
@@ -275,11 +276,14 @@ def memory_bench(run_dir: Path, sizes: list[int], out: Path) -> list[dict]:
 
 
 # ---- unaligned: a reference photo of another object ------------------------------------------
-def reference_photo(name: str, out: Path, size: int) -> Path:
-    """A render of another object (`sine synth`, 8 views, the first one) as an RGBA photo."""
+def reference_photo(name: str, out: Path, size: int, backdrop=None) -> tuple[Path, Path]:
+    """A render of another object (`sine synth`, 8 views, the second one) as an RGBA photo,
+    and the photo the edit is given: that one, or with `backdrop` (R, G, B) as an opaque photo
+    without alpha on a backdrop of that colour, lit unevenly (+-0.06 top to bottom) and noisy
+    (sigma 0.01), as a photo on a plain backdrop is -> (RGBA path, given path)."""
     from edit.targets import write_rgba
     from recon.synth import SynthConfig, synthesize
-    from render.io import read_image, read_mask
+    from render.io import read_image, read_mask, write_image
 
     syn = out / f"reference_{name}"
     if not (syn / "cameras.json").is_file():
@@ -287,8 +291,17 @@ def reference_photo(name: str, out: Path, size: int) -> Path:
         synthesize(SynthConfig(out=syn, views=8, width=size, height=size, **source), progress=False)
     frame = sorted((syn / "images").glob("*.png"))[1]
     photo = out / f"reference_{name}.png"
-    write_rgba(photo, read_image(frame), read_mask(syn / "masks" / frame.name).astype(np.float32))
-    return photo
+    rgb, alpha = read_image(frame), read_mask(syn / "masks" / frame.name).astype(np.float32)
+    write_rgba(photo, rgb, alpha)
+    if backdrop is None:
+        return photo, photo
+    h, w = alpha.shape
+    light = np.linspace(0.06, -0.06, h, dtype=np.float32)[:, None, None]
+    noise = np.random.default_rng(0).normal(0.0, 0.01, (h, w, 3)).astype(np.float32)
+    behind = np.clip(np.asarray(backdrop, np.float32) + light + noise, 0, 1)
+    opaque = out / f"reference_{name}_on_backdrop.png"
+    write_image(opaque, rgb * alpha[..., None] + behind * (1 - alpha[..., None]))
+    return photo, opaque
 
 
 def reference_color_distances(syn: Path, previews: list[Path], photo: Path) -> dict:
@@ -302,7 +315,7 @@ def reference_color_distances(syn: Path, previews: list[Path], photo: Path) -> d
     from edit.texture_loss import sliced_wasserstein
     from render.io import read_image, read_json, read_label_map
 
-    reference = torch.from_numpy(read_reference(photo, (1.0, 1.0, 1.0))[1])
+    reference = torch.from_numpy(read_reference(photo, (1.0, 1.0, 1.0)).colors)
     part = read_json(syn / "edits" / "texture" / "edit.json")["part"]
     gen = torch.Generator().manual_seed(0)
     directions = torch.nn.functional.normalize(torch.randn(64, 3, generator=gen), dim=1)
@@ -330,7 +343,7 @@ def unaligned(args, obj: str, reference: str) -> dict:
     syn, run, _ = prepare_object(
         obj, work, args.size, args.views, args.fit_iterations, not args.no_features
     )
-    photo = reference_photo(reference, args.out, args.size)
+    photo, given = reference_photo(reference, args.out, args.size, args.reference_backdrop)
     k = pick_edit_view(run, syn)
     region = painted_region(syn, run.load_cameras().frames[k], work / "region.png")
     options = {k_: json.loads(v) for k_, v in (kv.split("=", 1) for kv in args.set)}
@@ -340,7 +353,7 @@ def unaligned(args, obj: str, reference: str) -> dict:
     name = f"reference_{reference}{args.tag}"
     t0 = time.perf_counter()
     m = run_texture_edit(
-        run.root, k, None, name, cfg, region=region, reference=photo, progress=False
+        run.root, k, None, name, cfg, region=region, reference=given, progress=False
     )
     previews = sorted((run.edit(name) / "previews").glob("*.png"))
     sheet = np.concatenate([read_image(p) for p in previews], axis=0)
@@ -355,6 +368,7 @@ def unaligned(args, obj: str, reference: str) -> dict:
         **colors,
         "unedited_view_psnr": m.get("unedited_view_psnr"),
         "mask_source": m.get("mask_source"),
+        "reference_pixels": m.get("reference_pixels"),
         "iterations": m["iterations"],
         "seconds": m.get("total_seconds", time.perf_counter() - t0),
     }
@@ -405,6 +419,12 @@ def main() -> int:
         "--reference",
         help="unaligned case instead: the objects' part takes the look of a render of this "
         "object (e.g. avocado); before/after previews and CLS distances",
+    )
+    ap.add_argument(
+        "--reference-backdrop",
+        type=lambda s: [float(v) for v in s.split(",")],
+        help="R,G,B in [0, 1]: give the reference as an opaque photo (no alpha) on a backdrop "
+        "of this colour, unevenly lit and noisy; colour distances stay against its object",
     )
     ap.add_argument("--memory", type=Path, help="measure one step's peak memory on this RUN")
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512], help="--memory sizes")

@@ -6,7 +6,8 @@ wanted (`--reference`: the unaligned case), optionally the painted region of vie
 RUN/edits/NAME/, as for geometry edits:
 
     target.png, region.png, template_view.png   what the edit was learnt from (working size)
-    reference.png                                the reference photo (unaligned case)
+    reference.png                                the reference photo (unaligned case), what
+                                                 is not its object showing the run's background
     edit.json                                    mode, view, method and every option
     checkpoint.pt                                resumable training state
     edit_field.pt                                {"method": "texture", "editing": F_dG (the
@@ -36,8 +37,10 @@ graph, F_dT queried in chunks of samples):
   (`edit.texture_loss`; I_t the target, or the reference photo) and L_reg on the pixels outside
   the edited part; with a reference photo, beyond the paper, the colour term w_color
   SW(I[part], photo) pulls the edited part's colours to the photo's object colours (its opaque
-  pixels; squared sliced Wasserstein distance of the two colour distributions, so shading and
-  the template's structure stay: the CLS term alone moves DINO's token but barely the colours).
+  pixels; in a photo without alpha the object keyed from a plain backdrop, `reference_mask`,
+  else every pixel; squared sliced Wasserstein distance of the two colour distributions, so
+  shading and the template's structure stay: the CLS term alone moves DINO's token but barely
+  the colours).
   The edited part of a view comes from the semantic masks (K-means of the DINO
   feature field, as `sine masks`) when RUN/features exists, else from the painted region lifted
   onto the surface (`edit.texture_views.LiftedRegion`): view K's object pixels become surface
@@ -175,11 +178,20 @@ class TextureEditConfig(LoopOptions):
         1.0,
         "--reference only: weight of the colour term, the sliced Wasserstein distance between "
         "the colours of the edited part in the L_tex views and the reference photo's object "
-        "colours (its opaque pixels; all pixels of a photo without alpha; 0: off)",
+        "colours (its opaque pixels, or as --reference-mask finds them; 0: off)",
         low=0,
     )
     color_directions: int = option(
         16, "colour term: random directions in RGB per step it is measured along", low=1
+    )
+    reference_mask: str = option(
+        "auto",
+        "--reference without alpha: which of its pixels are the object whose look is taken "
+        "(colours, and what L_tex's CLS sees: the rest shows the run's background): auto (the "
+        "object keyed from a plain backdrop, every pixel when keying is not reliable, e.g. a "
+        "close-up of a texture), saliency (the saliency prior, for an object in clutter), none "
+        "(every pixel); a photo with alpha always uses its alpha",
+        choices=["auto", "saliency", "none"],
     )
     tex_views: int = option(1, "views around the object with L_tex and L_reg per step", low=0)
     tex_size: int = option(128, "longer side (px) of the L_tex views' renders", low=16)
@@ -234,7 +246,12 @@ RUNTIME_KEYS = (*LOOP_RUNTIME_KEYS, "previews", "chunk")
 
 # Options added after edits were recorded whose default is not what those edits did: a run
 # recorded without them counts as having had these values (so it is redone, not reused).
-RECORDED_BEFORE = {"template_feature": False, "keep_seen": False, "w_color": 0.0}
+RECORDED_BEFORE = {
+    "template_feature": False,
+    "keep_seen": False,
+    "w_color": 0.0,
+    "reference_mask": "none",
+}
 
 REFERENCE_COLORS = 65536  # pixels of a reference photo the colour term compares with, at most
 
@@ -251,16 +268,29 @@ class TextureSetup:
     region: np.ndarray  # [H, W] bool
     reference: bool
     reference_colors: np.ndarray | None = None  # [M, 3] the reference's object pixels
+    reference_pixels: str | None = None  # which pixels those are (ReferencePhoto.pixels)
 
 
-def read_reference(path, background) -> tuple[np.ndarray, np.ndarray]:
-    """A reference photo [H, W, 3], its transparent pixels showing the run's background, and its
-    object's colours [M, 3]: the pixels of alpha > 0.5, or every pixel without alpha (at most
-    REFERENCE_COLORS of them, a fixed random sample)."""
+@dataclass
+class ReferencePhoto:
+    """A reference photo as the edit uses it (`read_reference`)."""
+
+    rgb: np.ndarray  # [H, W, 3] outside the object: the run's background
+    colors: np.ndarray  # [M, 3] the object's colours (M <= REFERENCE_COLORS, a fixed sample)
+    pixels: str  # the object's pixels: alpha, keyed, saliency or all
+
+
+def read_reference(path, background, mask: str = "auto") -> ReferencePhoto:
+    """A reference photo with its object: the pixels of alpha > 0.5; in a photo without alpha,
+    as `mask` says (see TextureEditConfig.reference_mask), or every pixel."""
     path = Path(path)
     if not path.is_file():
         raise SineError(f"reference image {path} does not exist")
     rgb, alpha = read_image_rgba(path)
+    pixels = "alpha" if alpha is not None else "all"
+    if alpha is None and mask != "none":
+        alpha = reference_object(rgb, mask)
+        pixels = "all" if alpha is None else "saliency" if mask == "saliency" else "keyed"
     colors = rgb.reshape(-1, 3)
     if alpha is not None:
         colors = rgb[alpha > 0.5]
@@ -269,13 +299,28 @@ def read_reference(path, background) -> tuple[np.ndarray, np.ndarray]:
         raise SineError(f"reference image {path} is fully transparent: it shows no object")
     if len(colors) > REFERENCE_COLORS:  # a fixed sample: the colour term sorts it every step
         colors = colors[np.random.default_rng(0).permutation(len(colors))[:REFERENCE_COLORS]]
-    return rgb.astype(np.float32), colors.astype(np.float32)
+    return ReferencePhoto(rgb.astype(np.float32), colors.astype(np.float32), pixels)
+
+
+def reference_object(rgb: np.ndarray, method: str) -> np.ndarray | None:
+    """The object of a reference photo without alpha [H, W, 3] as an alpha [H, W] (0 or 1), by
+    colour keying (`method` auto; None where it is not reliable) or the saliency prior."""
+    from recon import masks
+
+    if method == "saliency":
+        found = masks.segment_salient(rgb, masks.saliency_map(rgb))
+        return found.astype(np.float32) if found.any() else None
+    keyed = masks.keyed_object(rgb)
+    return None if keyed is None else keyed.astype(np.float32)
 
 
 def options_in_effect(cfg: TextureEditConfig, reference) -> TextureEditConfig:
-    """`cfg` as it acts on an edit: the colour term is off without a reference photo (and is
-    recorded so: edits from a repainted view made before it existed are reused, not redone)."""
-    return cfg if reference is not None else replace(cfg, w_color=0.0)
+    """`cfg` as it acts on an edit: without a reference photo the colour term is off and no
+    photo is masked (and they are recorded so: edits from a repainted view made before those
+    options existed are reused, not redone)."""
+    if reference is not None:
+        return cfg
+    return replace(cfg, w_color=0.0, reference_mask="none")
 
 
 def pick_view(run: RunDir, view: int):
@@ -314,9 +359,16 @@ def prepare(
             editable &= tgt.silhouette > 0.5
         if not editable.any():
             raise SineError(f"the region to recolour does not touch the object in view {view}")
-    style, reference_colors = tgt.rgb if tgt is not None else None, None
+    style, photo = tgt.rgb if tgt is not None else None, None
     if reference is not None:
-        style, reference_colors = read_reference(reference, background)
+        photo = read_reference(reference, background, cfg.reference_mask)
+        style = photo.rgb
+        if photo.pixels == "all" and cfg.reference_mask != "none":
+            print(
+                f"edit: no object found apart from a backdrop in {reference}: every pixel of it "
+                "counts (for an object in clutter: --reference-mask saliency, or give a cutout "
+                "with alpha)"
+            )
     samples.editable = torch.from_numpy(editable.reshape(-1)).to(device)
     if tgt is not None:
         write_image(out / "target.png", tgt.rgb)
@@ -331,7 +383,8 @@ def prepare(
         style,
         editable,
         reference is not None,
-        reference_colors,
+        None if photo is None else photo.colors,
+        None if photo is None else photo.pixels,
     )
 
 
@@ -515,6 +568,8 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
     }
     if cfg.method == "ours":
         metrics["mask_source"] = mask_source
+    if setup.reference_pixels is not None:
+        metrics["reference_pixels"] = setup.reference_pixels
     panels = [template_rgb, rendered]
     if setup.target_rgb is not None:
         metrics["edited_view_psnr"] = psnr(rendered, setup.target_rgb)

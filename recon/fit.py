@@ -92,6 +92,9 @@ class FitConfig(LoopOptions):
         high=24,
     )
     levels: int = option(16, "hash-grid levels", low=1, high=32)
+    density_hidden: int = option(
+        128, "hidden width of the density MLP (one hidden layer after the hash grid)", low=1
+    )
     max_resolution: int = option(512, "finest hash-grid resolution over [-1, 1]^3", low=2)
     sampler: str = option(
         "band", "ray sampler: proxy band or the paper's uniform 64+128", choices=["band", "uniform"]
@@ -399,6 +402,7 @@ def field_config(cfg: FitConfig, n_views: int = 0) -> TemplateFieldConfig:
     views = n_views if cfg.appearance_dim else 0
     return TemplateFieldConfig(
         grid=grid,
+        density_hidden=cfg.density_hidden,
         sh_degree=cfg.sh_degree,
         appearance_dim=cfg.appearance_dim,
         appearance_views=views,

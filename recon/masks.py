@@ -67,6 +67,7 @@ class MaskParams:
     max_border_outliers: float = 0.15
     max_border_contact: float = 0.3
     max_coverage: float = 0.6
+    min_object: float = 0.02  # one photo (`keyed_object`): a smaller keyed object is not one
     # saliency seeds, on the saliency normalised to [0, 1] between the border's level and the peak
     saliency_sure_background: float = 0.1  # below: sure background
     saliency_probable: float = 0.4  # above: probable foreground
@@ -173,6 +174,17 @@ def segment_foreground(image: np.ndarray, params: MaskParams | None = None) -> n
     mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, kernel).astype(bool)
     mask = _largest_components(mask, params.min_component_fraction)
     return _fill_small_holes(mask, int(params.max_hole_fraction * h * w))
+
+
+def keyed_object(image: np.ndarray, params: MaskParams | None = None) -> np.ndarray | None:
+    """The object of one photo on a plain backdrop (image [H, W, 3]) as a mask [H, W] bool, or
+    None when colour keying is not reliable on it (`keying_check`: a cluttered or textured
+    background, a close-up of a texture) or finds no object of `min_object` of the image."""
+    params = params or MaskParams()
+    mask = segment_foreground(image, params)
+    if keying_check(image, mask, params)["reasons"] or mask.mean() < params.min_object:
+        return None
+    return mask
 
 
 def border_ring(shape: tuple[int, int], fraction: float) -> np.ndarray:

@@ -34,7 +34,14 @@ from recon.fit import load_fitted, make_sampler
 from recon.rundir import RunDir
 from render.cameras import Camera, look_at
 from render.hashgrid import HashGridConfig
-from render.io import load_torch, read_image, read_label_map, read_mask, write_mask
+from render.io import (
+    load_torch,
+    read_image,
+    read_label_map,
+    read_mask,
+    write_image,
+    write_mask,
+)
 from render.renderer import render_image, render_rays
 from render.sampler import UniformSampler
 from render.template_field import TemplateField, TemplateFieldConfig, freeze
@@ -427,13 +434,13 @@ def test_interrupted_texture_edit_resumes_bit_exactly(texture_run):
         for k in full[part]:
             assert torch.equal(full[part][k], resumed[part][k]), (part, k)
     assert run_texture_edit(*args, **kwargs)["skipped"]
-    # an edit from a repainted view recorded before the reference photos' colour term existed
-    # is still the same edit (the term is off without a reference): reused, not redone
+    # an edit from a repainted view recorded before the reference photos' colour term and
+    # masking existed is still the same edit (both are off without a reference): reused
     path = run / "edits" / "resumed" / "checkpoint.pt"
     saved = torch.load(path, weights_only=True)
     recorded = json.loads(saved["config"])
-    assert recorded["w_color"] == 0.0
-    del recorded["w_color"]
+    assert recorded["w_color"] == 0.0 and recorded["reference_mask"] == "none"
+    del recorded["w_color"], recorded["reference_mask"]
     saved["config"] = json.dumps(recorded)
     torch.save(saved, path)
     assert run_texture_edit(*args, **kwargs)["skipped"]
@@ -518,6 +525,42 @@ def test_reference_edit_takes_the_photos_colours(texture_run):
         change = np.abs(after - before["rgb"]).sum(-1)
         rest = (before["opacity"] > 0.5) & ~part
         assert change[part].mean() > factor * change[rest].mean(), k
+
+
+def _disc_photo(backdrop) -> tuple[np.ndarray, np.ndarray]:
+    """A 96 px photo without alpha: a green disc (its colours vary) on `backdrop` [3] with a
+    little noise -> (photo [96, 96, 3], disc [96, 96] bool)."""
+    yy, xx = np.mgrid[0:96, 0:96] / 95.0
+    disc = (xx - 0.5) ** 2 + (yy - 0.45) ** 2 < 0.09
+    green = np.stack([0.1 + 0.1 * xx, 0.5 + 0.2 * yy, 0.1 + 0 * xx], axis=-1)
+    noise = np.random.default_rng(0).normal(0, 0.01, (96, 96, 3))
+    photo = np.where(disc[..., None], green, np.asarray(backdrop) + noise)
+    return np.clip(photo, 0, 1).astype(np.float32), disc
+
+
+def test_reference_without_alpha_is_keyed_from_its_backdrop(tmp_path):
+    """A photo without alpha on a plain backdrop: its object's colours only, the backdrop
+    replaced by the run's background (keyed, or by saliency when asked); `none` keeps every
+    pixel; a close-up of a texture (no backdrop to key) keeps every pixel under `auto` too."""
+    from edit.texture_edit import read_reference
+
+    photo, disc = _disc_photo([0.55, 0.55, 0.6])
+    photo_path = tmp_path / "photo.png"
+    write_image(photo_path, photo)
+    keyed = read_reference(photo_path, (1.0, 0.0, 1.0))
+    assert keyed.pixels == "keyed"
+    assert (keyed.colors[:, 1] > 0.45).all()  # green only: not one backdrop pixel
+    assert len(keyed.colors) > 0.9 * disc.sum()
+    outside = keyed.rgb[~disc]
+    assert np.mean(np.all(np.abs(outside - [1.0, 0.0, 1.0]) < 1e-6, axis=1)) > 0.95
+    salient = read_reference(photo_path, (1.0, 0.0, 1.0), mask="saliency")
+    assert salient.pixels == "saliency" and (salient.colors[:, 1] > 0.45).mean() > 0.95
+    every = read_reference(photo_path, (1.0, 0.0, 1.0), mask="none")
+    assert every.pixels == "all" and len(every.colors) == photo.shape[0] * photo.shape[1]
+    np.testing.assert_allclose(every.rgb, read_image(photo_path))
+    texture = np.random.default_rng(1).uniform(0, 1, (96, 96, 3)).astype(np.float32)
+    write_image(tmp_path / "texture.png", texture)
+    assert read_reference(tmp_path / "texture.png", (1.0, 1.0, 1.0)).pixels == "all"
 
 
 def test_texture_cli_runs_and_errors_are_one_line(texture_run, capsys):
