@@ -27,7 +27,8 @@ Texture (--mode texture): the target is view K repainted (`sine target --recolor
 one); --region is the repainted part (else where target and template differ). Or --reference
 PHOTO: a photo of another object whose look the edited part takes (unaligned; --region then
 limits the part, else the whole object changes; the part takes the colours of the photo's
-opaque pixels, so an RGBA cut-out works best, --w-color 0 turns that off). The texture field
+object: an RGBA cut-out's opaque pixels, or the object keyed from a plain backdrop
+(--reference-mask; --w-color 0 turns the colour term off)). The texture field
 F_dT and a 2D compositor learn the edit from view K and a DINO texture loss on views all around
 (deferred back-propagation); semantic masks from RUN/features (`sine features`) keep the rest
 of the object unchanged. --no-compositor and --method naive are baselines.
