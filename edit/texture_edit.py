@@ -365,9 +365,9 @@ def prepare(
         style = photo.rgb
         if photo.pixels == "all" and cfg.reference_mask != "none":
             print(
-                f"edit: no object found apart from a backdrop in {reference}: every pixel of it "
-                "counts (for an object in clutter: --reference-mask saliency, or give a cutout "
-                "with alpha)"
+                f"edit: {reference} shows no object on a plain backdrop to key: every pixel of it "
+                "counts (an object in clutter: --reference-mask saliency, or a cut-out with "
+                "alpha)"
             )
     samples.editable = torch.from_numpy(editable.reshape(-1)).to(device)
     if tgt is not None:
