@@ -258,6 +258,15 @@ REFERENCE_COLORS = 65536  # pixels of a reference photo the colour term compares
 
 # ---- preparation --------------------------------------------------------------------------
 @dataclass
+class ReferencePhoto:
+    """A reference photo as the edit uses it (`read_reference`)."""
+
+    rgb: np.ndarray  # [H, W, 3] outside the object: the run's background
+    colors: np.ndarray  # [M, 3] the object's colours (M <= REFERENCE_COLORS, a fixed sample)
+    pixels: str  # the object's pixels: alpha, keyed, saliency or all
+
+
+@dataclass
 class TextureSetup:
     """What a texture edit trains from (written to the edit's folder)."""
 
@@ -267,17 +276,7 @@ class TextureSetup:
     style_image: np.ndarray  # [H', W', 3] the image whose CLS L_tex aims at
     region: np.ndarray  # [H, W] bool
     reference: bool
-    reference_colors: np.ndarray | None = None  # [M, 3] the reference's object pixels
-    reference_pixels: str | None = None  # which pixels those are (ReferencePhoto.pixels)
-
-
-@dataclass
-class ReferencePhoto:
-    """A reference photo as the edit uses it (`read_reference`)."""
-
-    rgb: np.ndarray  # [H, W, 3] outside the object: the run's background
-    colors: np.ndarray  # [M, 3] the object's colours (M <= REFERENCE_COLORS, a fixed sample)
-    pixels: str  # the object's pixels: alpha, keyed, saliency or all
+    photo: ReferencePhoto | None = None  # the reference photo (unaligned case)
 
 
 def read_reference(path, background, mask: str = "auto") -> ReferencePhoto:
@@ -365,9 +364,9 @@ def prepare(
         style = photo.rgb
         if photo.pixels == "all" and cfg.reference_mask != "none":
             print(
-                f"edit: {reference} shows no object on a plain backdrop to key: every pixel of it "
-                "counts (an object in clutter: --reference-mask saliency, or a cut-out with "
-                "alpha)"
+                f"edit: no object found in {reference} (--reference-mask {cfg.reference_mask}): "
+                "every pixel of it counts (auto keys a plain backdrop; an object in clutter: "
+                "--reference-mask saliency, or a cut-out with alpha)"
             )
     samples.editable = torch.from_numpy(editable.reshape(-1)).to(device)
     if tgt is not None:
@@ -383,8 +382,7 @@ def prepare(
         style,
         editable,
         reference is not None,
-        None if photo is None else photo.colors,
-        None if photo is None else photo.pixels,
+        photo,
     )
 
 
@@ -568,8 +566,8 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
     }
     if cfg.method == "ours":
         metrics["mask_source"] = mask_source
-    if setup.reference_pixels is not None:
-        metrics["reference_pixels"] = setup.reference_pixels
+    if setup.photo is not None:
+        metrics["reference_pixels"] = setup.photo.pixels
     panels = [template_rgb, rendered]
     if setup.target_rgb is not None:
         metrics["edited_view_psnr"] = psnr(rendered, setup.target_rgb)
@@ -710,8 +708,8 @@ def texture_steps(
         tex_loss = TextureLoss(dino, style, cfg.w_cls, cfg.w_structure)
     masker, mask_source = editable_masker(run, setup, cfg, device, feature_geometry)
     reference_colors = None
-    if use_tex and setup.reference_colors is not None and cfg.w_color > 0:
-        reference_colors = torch.from_numpy(setup.reference_colors).to(device)
+    if use_tex and setup.photo is not None and cfg.w_color > 0:
+        reference_colors = torch.from_numpy(setup.photo.colors).to(device)
 
     def make_view(camera) -> ViewSamples:
         view = sample_view(
