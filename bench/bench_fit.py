@@ -114,6 +114,9 @@ def main() -> None:
     ap.add_argument("--out", default="bench/out/fit", help="work and results folder")
     ap.add_argument("--cases", default="spot", help="comma-separated cases (see above)")
     ap.add_argument(
+        "--keep", action="store_true", help="keep each variant's run (CASE/run_NAME) to look at"
+    )
+    ap.add_argument(
         "--variant",
         action="append",
         default=None,
@@ -152,7 +155,8 @@ def main() -> None:
             ] + [row]
             out.mkdir(parents=True, exist_ok=True)
             results_path.write_text(json.dumps(results, indent=1))
-            shutil.rmtree(run)
+            if not args.keep:
+                shutil.rmtree(run)
             print_row(row, header=len(rows) == 1)
 
 

@@ -547,15 +547,16 @@ def run_demo(cfg: DemoConfig) -> dict:
     summary["seconds_work_total"] = round(sum(summary["seconds_work"].values()), 1)
     write_json(out / "demo_summary.json", summary)
     write_html(out, summary, outputs["rows"])
+    record.record("summary", outputs["summary_key"])  # once summary.png matches the key
     return summary
 
 
 def output_stages(cfg: DemoConfig, run, gt_dirs: dict, k: int, record, clock: Clock) -> dict:
     """render / export / view / eval / summary pictures; returns numbers, files, sheet rows.
     gt_dirs: {"geometric": GT of the geometric edit, "texture": GT of the texture edit}."""
-    from edit.eval_cli import evaluate
+    from edit.eval_cli import evaluate_scene
     from edit.export_cli import export_mesh
-    from edit.scene import load_scene
+    from edit.scene import RenderCache, load_scene
     from edit.view_cli import viewer_scene
     from render.camera_paths import orbit_cameras
     from render.frames import render_frames
@@ -567,9 +568,10 @@ def output_stages(cfg: DemoConfig, run, gt_dirs: dict, k: int, record, clock: Cl
         run.edit(EDIT_NAME) / "edit_field.pt",
         run.edit(TEXTURE_NAME) / "edit_field.pt",
     )
-    template = load_scene(run.root, None, device=cfg.device)
-    edit = load_scene(run.root, EDIT_NAME, device=cfg.device)
-    texture = load_scene(run.root, TEXTURE_NAME, device=cfg.device)
+    # the held-out views are scored, then some are shown on the summary sheet: rendered once
+    template = RenderCache(load_scene(run.root, None, device=cfg.device))
+    edit = RenderCache(load_scene(run.root, EDIT_NAME, device=cfg.device))
+    texture = RenderCache(load_scene(run.root, TEXTURE_NAME, device=cfg.device))
     frames = run.load_cameras().frames
     files = {
         "summary_png": "summary.png",
@@ -591,7 +593,7 @@ def output_stages(cfg: DemoConfig, run, gt_dirs: dict, k: int, record, clock: Cl
     clock.start("render")
     key = {"orbit": cfg.orbit, "fields": fields, "supersample": cfg.video_supersample}
     videos = {
-        name: dataclasses.replace(scene, supersample=cfg.video_supersample)
+        name: dataclasses.replace(scene.scene, supersample=cfg.video_supersample)
         for name, scene in (("template", template), ("edit", edit), ("texture", texture))
     }
     paths = [out / files[f"{v}_video"] for v in videos] + [out / files["compare_video"]]
@@ -632,25 +634,35 @@ def output_stages(cfg: DemoConfig, run, gt_dirs: dict, k: int, record, clock: Cl
 
     clock.start("eval")
     key = {"fields": fields, "gt": {k: str(v) for k, v in gt_dirs.items()}}
-    evals = {  # file: (edit name, ground truth, edit-region masks)
-        "eval_edit.json": (EDIT_NAME, gt_dirs["geometric"], None),
-        "eval_template_vs_gt_edit.json": (None, gt_dirs["geometric"], None),
-        "eval_texture.json": (TEXTURE_NAME, gt_dirs["texture"], out / "texture_part"),
-        "eval_template_vs_gt_texture.json": (None, gt_dirs["texture"], out / "texture_part"),
+    evals = {  # file: (scene, ground truth, edit-region masks)
+        "eval_edit.json": (edit, gt_dirs["geometric"], None),
+        "eval_template_vs_gt_edit.json": (template, gt_dirs["geometric"], None),
+        "eval_texture.json": (texture, gt_dirs["texture"], out / "texture_part"),
+        "eval_template_vs_gt_texture.json": (template, gt_dirs["texture"], out / "texture_part"),
     }
     skip = record.done("eval", key, [out / f for f in evals])
     if not skip:
-        for f, (name, gt, regions) in evals.items():
-            result = evaluate(run.root, name, gt, regions, split="test", device=cfg.device)
-            write_json(out / f, result)
+        for f, (scene, gt, regions) in evals.items():
+            write_json(out / f, evaluate_scene(scene, gt, regions, split="test"))
         record.record("eval", key)
     clock.finish("eval", skip)
     mean = {f: read_json(out / f)["mean"] for f in evals}
 
     clock.start("summary")
     rows = sheet_rows(frames, k, (FAST if cfg.fast else FULL)["rows"])
-    edits = [("geometric", edit, gt_dirs["geometric"]), ("texture", texture, gt_dirs["texture"])]
-    views = compare_views(template, edits, frames, rows, k)
+    # what the sheet's pictures and lines come from (the other numbers follow the fields)
+    masks = mtimes(run.edit(MASKS_EDIT) / "semantic_masks" / "metrics.json")
+    summary_key = {"fields": fields, "masks": masks, "rows": rows, "gt": key["gt"]}
+    previous = out / "demo_summary.json"
+    skip = record.done("summary", summary_key, [out / files["summary_png"], previous])
+    if skip:  # the sheet stays; its numbers are the previous summary's
+        views = {"views": read_json(previous)["views_compared"], "tiles": None}
+    else:
+        edits = [
+            ("geometric", edit, gt_dirs["geometric"]),
+            ("texture", texture, gt_dirs["texture"]),
+        ]
+        views = compare_views(template, edits, frames, rows, k)
     held = [v for v in views["views"] if v["role"] == "held-out"]
     edited = views["views"][0]
     geo, geo_t = mean["eval_edit.json"], mean["eval_template_vs_gt_edit.json"]
@@ -681,8 +693,8 @@ def output_stages(cfg: DemoConfig, run, gt_dirs: dict, k: int, record, clock: Cl
         "texture_edited_view_psnr_object": edited["texture_psnr_object"],
         "views_compared": views["views"],
     }
-    clock.finish("summary", False)
-    return {"numbers": numbers, "files": files, "rows": views["tiles"]}
+    clock.finish("summary", skip)
+    return {"numbers": numbers, "files": files, "rows": views["tiles"], "summary_key": summary_key}
 
 
 def summary_lines(s: dict) -> list[str]:
@@ -711,13 +723,14 @@ def summary_lines(s: dict) -> list[str]:
     ]
 
 
-def write_html(out: Path, s: dict, tiles: list[np.ndarray]) -> None:
-    """OUT/summary.png and OUT/summary.html (pictures and videos referenced next to it)."""
+def write_html(out: Path, s: dict, tiles: list[np.ndarray] | None) -> None:
+    """OUT/summary.png (unless `tiles` is None: the sheet is unchanged) and OUT/summary.html
+    (pictures and videos referenced next to it)."""
     from render.io import write_image, write_text_atomic
 
     lines = summary_lines(s)
-    tile_width = s["run_size"][0]
-    write_image(out / "summary.png", summary_sheet(tiles, lines, tile_width))
+    if tiles is not None:
+        write_image(out / "summary.png", summary_sheet(tiles, lines, s["run_size"][0]))
     files = s["files"]
     rel = {
         "recon contact sheet": "run/recon_contact_sheet.png",

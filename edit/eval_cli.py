@@ -61,15 +61,24 @@ def evaluate(
 ) -> dict:
     """Scores the template / edit of `run_dir` against `gt_dir` (see DESCRIPTION)."""
     from edit.scene import load_scene
-    from render.evaluation import evaluate_views, load_gt_views
 
     scene = load_scene(run_dir, edit, strength, device, supersample)
+    return evaluate_scene(scene, gt_dir, region_masks, split, chunk, progress)
+
+
+def evaluate_scene(
+    scene, gt_dir=None, region_masks=None, split="all", chunk=16384, progress=True
+) -> dict:
+    """Scores a loaded scene (`edit.scene.load_scene`) against `gt_dir` (default: its run's
+    captures) -> {"views": [per view], "mean": {...}, and what was scored}."""
+    from render.evaluation import evaluate_views, load_gt_views
+
     gt_dir = Path(gt_dir) if gt_dir is not None else scene.run.root
     views = load_gt_views(gt_dir, scene.run.load_cameras(), split, region_masks)
     result = evaluate_views(scene, views, chunk, progress)
     result.update(
         scene=scene.name,
-        strength=strength if edit is not None else None,
+        strength=getattr(scene, "strength", None),  # edits only
         gt=str(gt_dir),
         region_masks=None if region_masks is None else str(region_masks),
         split=split,

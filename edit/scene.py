@@ -8,13 +8,22 @@ for the template and for an edit of it.
 
 from __future__ import annotations
 
+import numpy as np
+
 from edit.editing_scene import load_edit_scene
 from edit.template_scene import Scene, TemplateScene, load_template_scene, radial_normals
 from recon.rundir import RunDir
 from render.device import pick_device
 from render.errors import SineError
 
-__all__ = ["Scene", "TemplateScene", "load_scene", "load_template_scene", "radial_normals"]
+__all__ = [
+    "RenderCache",
+    "Scene",
+    "TemplateScene",
+    "load_scene",
+    "load_template_scene",
+    "radial_normals",
+]
 
 
 def load_scene(
@@ -48,3 +57,33 @@ def _load(run: RunDir, edit: str | None, strength: float, dev) -> Scene:
             f"(edits there: {', '.join(have) or 'none'}); create it with `sine edit`"
         )
     return load_edit_scene(run, edit, float(strength), dev)
+
+
+class RenderCache:
+    """A scene whose `render_view` results are kept per camera (name, size, intrinsics, pose), for callers
+    that render the same views more than once (the demo scores held-out views, then shows some
+    of them on its summary sheet). Everything else is the wrapped scene's. The returned arrays
+    are shared: do not modify them."""
+
+    def __init__(self, scene: Scene):
+        self.scene = scene
+        self._renders: dict[tuple, dict] = {}
+
+    def __getattr__(self, name: str):
+        return getattr(self.scene, name)
+
+    def render_view(self, camera, chunk: int = 16384) -> dict:
+        pose = np.asarray(camera.camera_to_world, np.float64).tobytes()
+        key = (
+            camera.name,
+            camera.width,
+            camera.height,
+            camera.fx,
+            camera.fy,
+            camera.cx,
+            camera.cy,
+            pose,
+        )
+        if key not in self._renders:
+            self._renders[key] = self.scene.render_view(camera, chunk)
+        return self._renders[key]

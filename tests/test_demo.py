@@ -125,9 +125,12 @@ def test_fast_demo_end_to_end_then_resumes(tmp_path, capsys):
 
     # run again: every stage is skipped, the videos are not rewritten
     stamp = (out / "edit.mp4").stat().st_mtime_ns
+    sheet_stamp = (out / "summary.png").stat().st_mtime_ns
     assert main(["demo", "--fast", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     stages = ("fit", "features", "masks", "edit", "texture", "render", "export", "view", "eval")
-    for stage in stages:
+    for stage in (*stages, "summary"):
         assert f"{stage}: already done" in printed, stage
     assert (out / "edit.mp4").stat().st_mtime_ns == stamp
+    assert (out / "summary.png").stat().st_mtime_ns == sheet_stamp
+    assert read_json(out / "demo_summary.json")["views_compared"] == s["views_compared"]
