@@ -18,6 +18,7 @@ RUN/template.partial/ and, once finished, moves that to RUN/template/:
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -58,6 +59,20 @@ PRESETS: dict[str, dict[str, int]] = {
 
 
 DEFAULT_REFINE_AT = 0.3  # refine an estimated proxy after 30 % of the steps
+FALLBACK_MAX_RESOLUTION = 512  # --max-resolution without views to match it to
+
+
+def pixel_resolution(cameras, bound: float = 1.0) -> int:
+    """The grid resolution over [-bound, bound]^3 whose cell is one pixel's footprint at the
+    object's centre (the origin): 2 * bound / (distance / focal length), the median over the
+    cameras [V]. Rays through pixel centres sample a surface about once per such cell, so a
+    finer level is constrained by no more than one ray per cell in each view: it memorises
+    that view's pixels instead of the surface (held-out views get its aliasing)."""
+    footprints = [
+        np.linalg.norm(np.asarray(c.camera_to_world)[:3, 3]) / (0.5 * (c.fx + c.fy))
+        for c in cameras
+    ]
+    return max(2, int(math.ceil(2.0 * bound / float(np.median(footprints)))))
 
 
 @dataclass
@@ -95,7 +110,13 @@ class FitConfig(LoopOptions):
     density_hidden: int = option(
         128, "hidden width of the density MLP (one hidden layer after the hash grid)", low=1
     )
-    max_resolution: int = option(512, "finest hash-grid resolution over [-1, 1]^3", low=2)
+    max_resolution: int | None = option(
+        None,
+        "finest hash-grid resolution over [-1, 1]^3 (None: matched to the training images, one "
+        "finest cell per pixel at the object's centre: ~220 for 256 px turntables, ~370 for "
+        "the 400 px dinosaur; finer levels only memorise each view's pixels)",
+        low=2,
+    )
     sampler: str = option(
         "band", "ray sampler: proxy band or the paper's uniform 64+128", choices=["band", "uniform"]
     )
@@ -202,7 +223,8 @@ class FitConfig(LoopOptions):
 
 def resolve_preset(cfg: FitConfig, run: RunDir | None = None) -> FitConfig:
     """`cfg` with the options left at None taken from its preset (and, for `refine_proxy`,
-    from how the run's proxy was made: recon_report.json's depth_source)."""
+    from how the run's proxy was made: recon_report.json's depth_source; for
+    `max_resolution`, from the training cameras: `pixel_resolution`)."""
     preset = PRESETS.get(cfg.preset)
     if preset is None:
         raise SineError(f"--preset must be one of {', '.join(PRESETS)} (got {cfg.preset!r})")
@@ -213,6 +235,10 @@ def resolve_preset(cfg: FitConfig, run: RunDir | None = None) -> FitConfig:
             source = read_json(run.recon_report).get("depth_source")
         estimated = source is not None and source != "dataset"
         chosen["refine_proxy"] = DEFAULT_REFINE_AT if estimated else 0.0
+    if cfg.max_resolution is None:
+        known = run is not None and run.cameras.is_file()
+        train = [c for c in run.load_cameras().frames if c.split == "train"] if known else []
+        chosen["max_resolution"] = pixel_resolution(train) if train else FALLBACK_MAX_RESOLUTION
     return replace(cfg, **chosen)
 
 
@@ -543,8 +569,8 @@ def fit_template(
     `stop_at` ends this call after that step, with a checkpoint (as if interrupted).
     """
     run = RunDir(run_dir)
-    cfg = validate(resolve_preset(cfg or FitConfig(), run))
     run.require("cameras")
+    cfg = validate(resolve_preset(cfg or FitConfig(), run))
     require_trusted_poses(run)
     if not run.proxy_mesh.is_file() and cfg.sampler == "band":
         raise SineError(f"{run.root} has no proxy_mesh.ply yet; run `sine recon {run.root}` first")

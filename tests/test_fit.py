@@ -256,6 +256,28 @@ def test_presets_fill_only_the_options_not_given():
         resolve_preset(FitConfig(preset="slow"))
 
 
+def test_max_resolution_matches_one_cell_to_a_pixel_at_the_object(tmp_path):
+    """A camera 4 units from the object's centre with a focal length of 400 px sees 0.01 units
+    per pixel there: over [-1, 1] that is 200 cells. The median over the training views counts
+    (a held-out view closer in does not), an explicit value wins, no cameras -> 512."""
+    from recon.fit import FALLBACK_MAX_RESOLUTION, pixel_resolution, resolve_preset
+
+    def cam(distance, focal, split="train"):
+        pose = look_at([distance, 0.0, 0.0], [0.0, 0.0, 0.0])
+        return Camera(64, 64, focal, focal, 32, 32, pose, split=split)
+
+    assert pixel_resolution([cam(4.0, 400.0)]) == 200
+    assert pixel_resolution([cam(4.0, 400.0)], bound=1.5) == 300
+    assert pixel_resolution([cam(4.0, 400.0), cam(2.0, 400.0), cam(4.0, 400.0)]) == 200
+
+    run = RunDir(tmp_path / "run")
+    run.root.mkdir()
+    assert resolve_preset(FitConfig(), run).max_resolution == FALLBACK_MAX_RESOLUTION
+    run.save_cameras(CameraSet([cam(4.0, 400.0), cam(3.0, 300.0), cam(1.0, 400.0, "test")]))
+    assert resolve_preset(FitConfig(), run).max_resolution == 200
+    assert resolve_preset(FitConfig(max_resolution=64), run).max_resolution == 64
+
+
 def test_appearance_codes_are_fitted_and_blended_for_held_out_views(tiny_run, tmp_path):
     run = _copy(tiny_run, tmp_path / "run")
     cfg = FitConfig(iterations=30, appearance_dim=4, **TINY)
