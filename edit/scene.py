@@ -60,10 +60,10 @@ def _load(run: RunDir, edit: str | None, strength: float, dev) -> Scene:
 
 
 class RenderCache:
-    """A scene whose `render_view` results are kept per camera (name, size, intrinsics, pose), for callers
-    that render the same views more than once (the demo scores held-out views, then shows some
-    of them on its summary sheet). Everything else is the wrapped scene's. The returned arrays
-    are shared: do not modify them."""
+    """A scene whose `render_view` results are kept per camera (name, size, intrinsics, pose),
+    for callers that render the same views more than once (the demo scores held-out views, then
+    shows some of them on its summary sheet). Everything else is the wrapped scene's. The
+    returned arrays are shared: do not modify them."""
 
     def __init__(self, scene: Scene):
         self.scene = scene

@@ -65,7 +65,7 @@ FALLBACK_MAX_RESOLUTION = 512  # --max-resolution without views to match it to
 def pixel_resolution(cameras, bound: float = 1.0) -> int:
     """The grid resolution over [-bound, bound]^3 whose cell is one pixel's footprint at the
     object's centre (the origin): 2 * bound / (distance / focal length), the median over the
-    cameras [V]. Rays through pixel centres sample a surface about once per such cell, so a
+    cameras. Rays through pixel centres sample a surface about once per such cell, so a
     finer level is constrained by no more than one ray per cell in each view: it memorises
     that view's pixels instead of the surface (held-out views get its aliasing)."""
     footprints = [
