@@ -275,7 +275,6 @@ class TextureSetup:
     target_rgb: np.ndarray | None  # [H, W, 3] (aligned case)
     style_image: np.ndarray  # [H', W', 3] the image whose CLS L_tex aims at
     region: np.ndarray  # [H, W] bool
-    reference: bool
     photo: ReferencePhoto | None = None  # the reference photo (unaligned case)
 
 
@@ -381,7 +380,6 @@ def prepare(
         None if tgt is None else tgt.rgb,
         style,
         editable,
-        reference is not None,
         photo,
     )
 

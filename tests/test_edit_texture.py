@@ -344,7 +344,7 @@ def test_semantic_masks_keep_what_view_k_saw_unpainted(tiny_fitted_run, tmp_path
     cols = np.nonzero(body)[1]
     region = body & (np.arange(camera.width) < np.median(cols))[None, :]
     view = sample_view(camera, template, sampler, background)
-    setup = TextureSetup(camera, view, None, np.zeros((8, 8, 3), np.float32), region, False)
+    setup = TextureSetup(camera, view, None, np.zeros((8, 8, 3), np.float32), region)
     masks = {}
     for keep in (False, True):
         cfg = TextureEditConfig(keep_seen=keep)
