@@ -23,6 +23,7 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -175,10 +176,12 @@ class FitConfig(LoopOptions):
     )
     supersample_pixels: str = option(
         "all",
-        "which training pixels get the s x s box filter: all, or error (only the part of each "
+        "which training pixels get the s x s box filter: all; error (only the part of each "
         "batch drawn by error: silhouettes and fine texture, where a pixel's content varies; "
-        "the uniform part keeps one ray per pixel)",
-        choices=["all", "error"],
+        "the uniform part keeps one ray per pixel); or edge (pixels within one pixel of the "
+        "mask's boundary, or of the proxy's silhouette without masks: where a pixel is part "
+        "object, part background)",
+        choices=["all", "error", "edge"],
     )
     supersample_from: float = option(
         0.0,
@@ -295,6 +298,7 @@ class RayPool:
     miss_rgb: torch.Tensor  # [Q, 3] colours of rays that miss (for a learned background)
     errors: torch.Tensor  # [P] each ray's squared error when it was last trained on
     view: torch.Tensor  # [P] int64 index of the ray's training view
+    edge: torch.Tensor  # [P] bool: the pixel is within one pixel of the object's silhouette
     pixel_axes: torch.Tensor  # [V, 3, 3] per view: world vectors of +1 px in u, in v, and z
 
 
@@ -358,8 +362,17 @@ class RaySelector:
         self.pool.errors[idx] = errors.detach().clamp_min(1e-6)
 
 
+def silhouette_edge(mask: np.ndarray) -> np.ndarray:
+    """[H, W] mask -> [H, W] bool: pixels whose 3 x 3 neighbourhood holds both object and
+    background (the one-pixel rings on both sides of the silhouette)."""
+    inside = (np.asarray(mask) > 0.5).astype(np.uint8)
+    kernel = np.ones((3, 3), np.uint8)
+    return cv2.dilate(inside, kernel) != cv2.erode(inside, kernel)
+
+
 def build_ray_pool(views, sampler, device: torch.device) -> RayPool:
     o_all, d_all, c_all, m_all, h_all, miss, v_all, axes = [], [], [], [], [], [], [], []
+    e_all = []
     n_total = 0
     has_masks = all(m is not None for _, _, m in views)
     for i, (cam, image, mask) in enumerate(views):
@@ -375,6 +388,8 @@ def build_ray_pool(views, sampler, device: torch.device) -> RayPool:
         c_all.append(rgb[hit])
         m_all.append(m[hit] if m is not None else torch.ones(int(hit.sum()), device=device))
         v_all.append(torch.full((int(hit.sum()),), i, dtype=torch.int64, device=device))
+        inside = mask if mask is not None else hit.reshape(cam.height, cam.width).cpu().numpy()
+        e_all.append(torch.from_numpy(silhouette_edge(inside).reshape(-1)).to(device)[hit])
         axes.append(pixel_axes(cam))
         h_all.append(hits[hit])
         miss.append(rgb[~hit][:: max(1, int((~hit).sum()) // 2000 + 1)])
@@ -390,6 +405,7 @@ def build_ray_pool(views, sampler, device: torch.device) -> RayPool:
         torch.cat(miss),
         errors=torch.full((len(origins),), 0.05, device=device),  # ~ an untrained field's MSE
         view=torch.cat(v_all),
+        edge=torch.cat(e_all),
         pixel_axes=torch.as_tensor(np.stack(axes), dtype=torch.float32, device=device),
     )
     if len(pool.origins) == 0:
@@ -647,12 +663,21 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     sub = cfg.train_supersample**2  # rays per box-filtered training pixel
     box_from = round(cfg.supersample_from * cfg.iterations) if sub > 1 else cfg.iterations + 1
     box_part = cfg.error_sampling if cfg.supersample_pixels == "error" else 1.0
+    by_edge = cfg.supersample_pixels == "edge"
+    edge_share = [float(pool.edge.float().mean())]  # of the last batch's pixels ("edge")
 
     def step(i: int) -> dict[str, torch.Tensor]:
         boxed_fraction = box_part if i >= box_from else 0.0
+        if by_edge:
+            boxed_fraction = edge_share[0] if i >= box_from else 0.0
         n_pixels = max(1, round(cfg.batch_rays / (1 - boxed_fraction + boxed_fraction * sub)))
         idx = selector.draw(n_pixels)  # uniform pixels first, then those drawn by error
         n_boxed = round(len(idx) * boxed_fraction)
+        if by_edge and i >= box_from:  # the edge pixels last, boxed
+            on_edge = pool.edge[idx]
+            idx = torch.cat([idx[~on_edge], idx[on_edge]])
+            n_boxed = int(on_edge.sum())
+            edge_share[0] = n_boxed / len(idx)
         n_single = len(idx) - n_boxed
         dirs = pool.dirs[idx]  # [n, 3]
         if cfg.pixel_jitter:  # the band of the centre ray holds: a pixel is << the band

@@ -228,7 +228,9 @@ def test_ray_selector_draws_in_proportion_to_the_last_errors():
     from recon.fit import RayPool, RaySelector
 
     n = 1000
-    pool = RayPool(*([None] * 8), errors=torch.full((n,), 1e-4), view=None, pixel_axes=None)
+    pool = RayPool(
+        *([None] * 8), errors=torch.full((n,), 1e-4), view=None, edge=None, pixel_axes=None
+    )
     pool.errors[7] = 1.0  # one ray still wrong: ~0.9 of the error draws
     selector = RaySelector(pool, 0.5, torch.Generator().manual_seed(0))
     idx = selector.draw(2000)
@@ -375,6 +377,48 @@ def test_the_proxy_is_refined_by_default_only_when_it_was_estimated(tmp_path):
         assert resolve_preset(FitConfig(), run).refine_proxy == expected
     assert resolve_preset(FitConfig(refine_proxy=0.5), run).refine_proxy == 0.5
     assert resolve_preset(FitConfig(refine_proxy=0.0), run).refine_proxy == 0.0
+
+
+def test_silhouette_edge_marks_the_rings_on_both_sides_of_the_boundary():
+    from recon.fit import silhouette_edge
+
+    mask = np.zeros((7, 8), bool)
+    mask[2:5, 3:6] = True  # a 3 x 3 square
+    edge = silhouette_edge(mask)
+    ring = np.zeros((7, 8), bool)
+    ring[1:6, 2:7] = True  # the square grown by one pixel ...
+    ring[3, 4] = False  # ... without its only pixel whose neighbours are all inside
+    assert (edge == ring).all()
+    assert not silhouette_edge(np.ones((4, 4))).any()
+
+
+def test_box_filter_on_silhouette_pixels_only(tiny_run, tmp_path, monkeypatch):
+    """--supersample-pixels edge: only the batch's pixels on the mask's boundary get 2 x 2 rays,
+    and the fit learns the sphere."""
+    import recon.fit
+
+    boxed, drawn = [], []
+    real_draw = recon.fit.RaySelector.draw
+
+    def draw(self, n):
+        idx = real_draw(self, n)
+        drawn.append(int(self.pool.edge[idx].sum()))
+        return idx
+
+    def counted(dirs, axes, s):
+        boxed.append(len(dirs))
+        return subpixel_dirs(dirs, axes, s)
+
+    monkeypatch.setattr(recon.fit.RaySelector, "draw", draw)
+    monkeypatch.setattr(recon.fit, "subpixel_dirs", counted)
+    run = _copy(tiny_run, tmp_path / "run")
+    cfg = FitConfig(iterations=200, train_supersample=2, supersample_pixels="edge", **TINY)
+    metrics = fit_template(run.root, cfg, progress=False)
+    assert len(boxed) == 200 and boxed == [n for n in drawn if n]
+    assert 0 < min(boxed) and max(boxed) < 256  # some pixels of each batch, never all
+    # These images are point samples (one ray per pixel, hard edges), not the pixel's area the
+    # box filter models: 24.5 dB measured against the one-ray fit's 28.4; the mean colour 21.8.
+    assert metrics["heldout_psnr"] > 23.5
 
 
 def test_box_filtered_training_fits_the_pixels_it_averages(tiny_run, tmp_path, monkeypatch):
