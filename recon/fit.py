@@ -180,7 +180,8 @@ class FitConfig(LoopOptions):
         "batch drawn by error: silhouettes and fine texture, where a pixel's content varies; "
         "the uniform part keeps one ray per pixel); or edge (pixels within one pixel of the "
         "mask's boundary, or of the proxy's silhouette without masks: where a pixel is part "
-        "object, part background)",
+        "object, part background; for exact alpha masks as in renders: +0.2 to +1.3 dB on "
+        "synthetic turntables, -0.1 to -0.2 on photos with estimated masks)",
         choices=["all", "error", "edge"],
     )
     supersample_from: float = option(
