@@ -157,12 +157,13 @@ def _grads(*modules) -> list[torch.Tensor]:
     return [p.grad.clone() for m in modules for p in m.parameters() if p.requires_grad]
 
 
-@pytest.mark.parametrize("cond_dim", [0, 4])
-def test_deferred_gradients_equal_direct_backpropagation(cond_dim):
+@pytest.mark.parametrize("cond_dim, plain", [(0, False), (4, False), (0, True)])
+def test_deferred_gradients_equal_direct_backpropagation(cond_dim, plain):
     """Two images through F_dT (position only, or reading per-sample features) and the
-    compositor, an image-space loss mixing all pixels: the parameter gradients of deferred
-    back-propagation in tiles of 4 px (halo 8, F_dT on 5 samples at a time) equal those of
-    direct back-propagation through the whole images at once."""
+    compositor, an image-space loss mixing all pixels (plain: also a loss on I_o + I_m before
+    the compositor, `--w-plain`): the parameter gradients of deferred back-propagation in tiles
+    of 4 px (halo 8, F_dT on 5 samples at a time) equal those of direct back-propagation through
+    the whole images at once."""
     torch.manual_seed(0)
     texture, comp = TextureField(SMALL_GRID, cond_dim=cond_dim), Compositor()
     with torch.no_grad():  # leave the zero start so every parameter gets a gradient
@@ -176,6 +177,8 @@ def test_deferred_gradients_equal_direct_backpropagation(cond_dim):
         for leaf, g in zip(leaves, goal, strict=True):
             image = leaf["rgb"]  # [h, w, 3]
             total = total + ((image - g) ** 2).mean() + image.mean((0, 1)).pow(2).sum()
+            if plain:
+                total = total + ((leaf["plain"] - g) ** 2).mean()
         return total, None
 
     # the reference: I_m of every pixel at once, one compositor pass per image, one backward
@@ -183,12 +186,14 @@ def test_deferred_gradients_equal_direct_backpropagation(cond_dim):
     for view in views:
         h, w = view.size
         mod = render_modification(view, texture, None).reshape(h, w, 3)  # one plain graph
-        images.append({"rgb": composite_hwc(comp, view.template_rgb.reshape(h, w, 3), mod)})
+        template_rgb = view.template_rgb.reshape(h, w, 3)
+        images.append({"rgb": composite_hwc(comp, template_rgb, mod)})
+        images[-1]["plain"] = (template_rgb + mod).clamp(0, 1)
     loss_direct, _ = loss_fn(images)
     loss_direct.backward()
     direct = _grads(texture, comp)
     texture.zero_grad(), comp.zero_grad()
-    tiled = [edited_image(v, texture, comp, tile=4, chunk=5) for v in views]
+    tiled = [edited_image(v, texture, comp, tile=4, chunk=5, plain=plain) for v in views]
     assert len(tiled[0].pieces) == 4 * 3
     loss_deferred, _ = deferred_backward(tiled, loss_fn)
     deferred = _grads(texture, comp)
