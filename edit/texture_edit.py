@@ -59,6 +59,10 @@ graph, F_dT queried in chunks of samples):
   the template; rendered into each view, the same gate is the compositor's g (its residual acts
   on the part's pixels only, on every side of the part).
 
+`--w-plain W` (beyond the paper, off by default): the photometric term on view K's crop also on
+I_o + I_m before the compositor, so F_dT makes the change itself in 3D and the compositor refines
+it (bench/RESULTS.md: better on a one-colour part, worse on a part with varied details).
+
 `--no-compositor` (a baseline): I = clamp(I_o + I_m), i.e. m' added to c' inside volume
 rendering (`edit.editing_field.combine`), same losses. `--method naive` (a baseline): the
 template's colour MLP fine-tuned on view K's rays (target inside the region, the template's own
@@ -155,7 +159,9 @@ class TextureEditConfig(LoopOptions):
     w_plain: float = option(
         0.0,
         "weight of the same photometric term on I_o + I_m before the compositor (F_dT alone "
-        "must make view K's change too; the compositor then refines it)",
+        "must make view K's change too; the compositor then refines it): helps a part of one "
+        "plain colour (1: spot +0.5 dB), hurts a part whose details change differently (1: the "
+        "toycar's body mottles, -1.2 dB); 0: off",
         low=0,
     )
     w_reg: float = option(
