@@ -9,7 +9,7 @@ the same weights, `edit.editing_field.edited_query`) into the edited view I:
                                       e2 [B, 32, H/2, W/2]
     decoder  upsample x2 (bilinear, cropped to H, W), conv3x3 32 -> 16, ReLU
              concat with e1 (skip), conv3x3 32 -> 16, ReLU
-             conv3x3 16 -> 3 (the head)
+             conv3x3 16 -> 3 (the head; 12 with the affine head below)
     output   I = sigmoid(logit(clamp(I_o + I_m, eps, 1 - eps)) + g * head)
              g in [0, 1] per pixel: where the edit may act (below)
 
@@ -27,6 +27,18 @@ the view, so the UNet's colour mapping reaches every side of the part, seen in v
 Without one, g comes from the modification itself, g = 1 - exp(-(|I_m|_1 / TAU)^2): a pixel
 with I_m = 0 stays I_o (squared, so faint colours F_dT leaks elsewhere, |I_m|_1 of a few 1e-3,
 open it by less than 1 %). The output is a sigmoid, in (0, 1).
+
+Head `affine` (`sine edit --compositor-head affine`, beyond the paper): the head predicts, per
+pixel, a 3 x 3 matrix A and an offset b (12 channels), and
+
+    I = clamp(base + g * (A base + b), 0, 1)      base = I_o + I_m
+
+(the clamp passes gradients through as if absent, so a pixel pushed out of range is pulled back).
+The UNet says which colour transform applies where; the transform acts on each pixel's colour
+linearly. A surface's pixel is its albedo times its shading, so a linear change of the albedo
+(a hue rotation, desaturating, painting one colour over a part's shades) is one A for every
+shade: the transform learnt on view K carries to shades it did not show (a lit top, a shadowed
+side) and passes the template's detail through. Starts at zero as well: I = base.
 
 Every layer is a 3x3 convolution, a x2 down- or up-sampling: the network commutes with shifts of
 the image by an even number of pixels and each output pixel depends on input pixels at most 7
@@ -48,21 +60,34 @@ def _conv(c_in: int, c_out: int, stride: int = 1) -> nn.Conv2d:
     return nn.Conv2d(c_in, c_out, 3, stride=stride, padding=1)
 
 
-class Compositor(nn.Module):
-    """(I_o [B, 3, H, W], I_m [B, 3, H, W]) -> I [B, 3, H, W] in (0, 1); see the module doc."""
+HEADS = {"residual": 3, "affine": 12}  # the head's output channels per kind (module doc)
 
-    def __init__(self, width: int = 16):
+
+class Compositor(nn.Module):
+    """(I_o [B, 3, H, W], I_m [B, 3, H, W]) -> I [B, 3, H, W] in (0, 1); see the module doc.
+    `head`: "residual" (the paper's: a logit residual) or "affine" (a colour transform per pixel)."""
+
+    def __init__(self, width: int = 16, head: str = "residual"):
         super().__init__()
+        if head not in HEADS:
+            raise ValueError(f"unknown compositor head {head!r}; use {' or '.join(HEADS)}")
+        self.kind = head
         self.enc1 = _conv(6, width)
         self.enc2 = _conv(width, 2 * width, stride=2)
         self.dec2 = _conv(2 * width, width)
         self.dec1 = _conv(2 * width, width)
-        self.head = _conv(width, 3)
+        self.head = _conv(width, HEADS[head])
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
 
-    def residual(self, template: torch.Tensor, modification: torch.Tensor) -> torch.Tensor:
-        """The head's logit residual [B, 3, H, W] (zero before training)."""
+    @classmethod
+    def for_state(cls, state: dict) -> "Compositor":
+        """An untrained compositor of the shape a `state_dict` was saved from (width, head)."""
+        kinds = {n: k for k, n in HEADS.items()}
+        return cls(width=int(state["enc1.weight"].shape[0]), head=kinds[state["head.bias"].numel()])
+
+    def head_output(self, template: torch.Tensor, modification: torch.Tensor) -> torch.Tensor:
+        """The head's output [B, 3 or 12, H, W] (zero before training)."""
         e1 = F.relu(self.enc1(torch.cat([template, modification], dim=1)))
         e2 = F.relu(self.enc2(e1))
         up = F.interpolate(e2, scale_factor=2.0, mode="bilinear", align_corners=False)
@@ -84,13 +109,18 @@ class Compositor(nn.Module):
                 f"expected two [B, 3, H, W] images, got {tuple(template.shape)} and "
                 f"{tuple(modification.shape)}"
             )
-        base = (template + modification).clamp(EPS, 1.0 - EPS)
+        base = (template + modification).clamp(EPS, 1.0 - EPS)  # [B, 3, H, W]
+        head = self.head_output(template, modification)
         if region is None:
             presence = modification.abs().sum(dim=1, keepdim=True) / TAU  # [B, 1, H, W]
             gate = 1.0 - torch.exp(-(presence**2))
         else:
             gate = region
-        return torch.sigmoid(torch.logit(base) + gate * self.residual(template, modification))
+        if self.kind == "residual":
+            return torch.sigmoid(torch.logit(base) + gate * head)
+        a = head[:, :9].unflatten(1, (3, 3))  # [B, 3, 3, H, W]
+        out = base + gate * (torch.einsum("bijhw,bjhw->bihw", a, base) + head[:, 9:])
+        return out + (out.clamp(0.0, 1.0) - out).detach()  # clamped, gradients as if not
 
 
 def composite_hwc(

@@ -279,7 +279,8 @@ def scene_from_folder(run: RunDir, edit_dir, strength: float, device: torch.devi
     if data["method"] in ("texture", "hybrid"):
         compositor = None
         if texture.get("compositor") is not None:
-            compositor = loaded(Compositor(), texture["compositor"])
+            state = texture["compositor"]
+            compositor = loaded(Compositor.for_state(state), state)
         return TextureEditScene(
             **common,
             compositor=compositor,

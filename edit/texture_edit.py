@@ -80,7 +80,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from edit.compositor import HALO, Compositor, composite_hwc
+from edit.compositor import HALO, HEADS, Compositor, composite_hwc
 from edit.deferred import DeferredImage, deferred_backward, image_tiles
 from edit.edit_inputs import difference_region, read_region, read_target
 from edit.editing_field import EditingField
@@ -128,6 +128,13 @@ class TextureEditConfig(LoopOptions):
     )
     compositor: bool = option(
         True, "blend I_o and I_m with the 2D compositor (--no-compositor: I_o + I_m, a baseline)"
+    )
+    compositor_head: str = option(
+        "residual",
+        "what the compositor's UNet predicts per pixel: residual (the paper's: a colour residual "
+        "in logit space) or affine (a 3 x 3 colour transform + offset of the pixel's RGB: one "
+        "transform recolours every shade of a part, seen in view K or not)",
+        choices=list(HEADS),
     )
     iterations: int = option(600, "training steps", low=1)
     template_feature: bool = option(
@@ -673,7 +680,7 @@ def texture_parts(template, cfg: TextureEditConfig, device):
         nn.init.zeros_(deform.mlp[-1].bias)
         freeze(deform)
     texture = editing.texture
-    compositor = Compositor().to(device) if cfg.compositor else None
+    compositor = Compositor(head=cfg.compositor_head).to(device) if cfg.compositor else None
     groups = [
         {"params": [texture.grid.table], "lr": cfg.lr_grid, "eps": 1e-15, "name": "grid"},
         {"params": list(texture.mlp.parameters()), "lr": cfg.lr_mlp, "name": "mlp"},

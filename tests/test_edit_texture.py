@@ -105,6 +105,50 @@ def test_compositor_shapes_and_identity_start():
     assert torch.allclose(out[0, :, 3, 3], full, atol=1e-6)
 
 
+def test_affine_head_starts_at_the_plain_sum_and_applies_one_colour_transform():
+    torch.manual_seed(0)
+    comp = Compositor(head="affine")
+    assert comp.head.out_channels == 12
+    template = torch.rand(1, 3, 6, 8) * 0.9 + 0.05
+    mod = torch.full_like(template, 0.02)
+    assert torch.allclose(comp(template, mod), (template + mod).clamp(EPS, 1 - EPS), atol=1e-5)
+    # A = P - 1 with P the channel permutation (R, G, B) -> (B, R, G) (a hue rotation by 120
+    # degrees), b = 0: where the gate is 1 the output is the base with its channels permuted,
+    # whatever each pixel's shade; where it is 0, the base
+    perm = torch.tensor([[0.0, 0, 1], [1, 0, 0], [0, 1, 0]])
+    with torch.no_grad():
+        comp.head.bias[:9] = (perm - torch.eye(3)).flatten()
+    region = torch.zeros(1, 1, 6, 8)
+    region[..., 3:, :] = 1.0
+    base = (template + mod).clamp(EPS, 1 - EPS)
+    out = comp(template, mod, region)
+    assert torch.allclose(out[..., 3:, :], base[:, [2, 0, 1], 3:, :], atol=1e-5)
+    assert torch.allclose(out[..., :3, :], base[..., :3, :], atol=1e-6)
+    # A = diag(-0.5, 0, -0.5): grey shades (v, v, v) become (v / 2, v, v / 2), a green of the
+    # same shade: the map is linear in RGB, so every shade takes it alike
+    with torch.no_grad():
+        comp.head.bias[:9] = torch.diag(torch.tensor([-0.5, 0.0, -0.5])).flatten()
+    grey = torch.linspace(0.1, 0.9, 8).expand(1, 3, 6, 8).contiguous()
+    out = comp(grey, torch.zeros_like(grey), torch.ones(1, 1, 6, 8))
+    expected = torch.stack([grey[:, 0] / 2, grey[:, 1], grey[:, 2] / 2], dim=1)
+    assert torch.allclose(out, expected, atol=1e-6)
+    # out of [0, 1]: clamped, and the gradient still pulls the pixel back
+    with torch.no_grad():
+        comp.head.bias[:9] = 0.0
+        comp.head.bias[9:] = 0.5  # b: +0.5 on every channel
+    mod = torch.zeros_like(grey).requires_grad_(True)
+    out = comp(grey, mod, torch.ones(1, 1, 6, 8))
+    assert out.max() == 1.0 and out.min() > 0.5
+    out.sum().backward()
+    assert (mod.grad == 1.0).all()
+    # a saved compositor comes back with its head's kind and width
+    again = Compositor.for_state(comp.state_dict())
+    assert again.kind == "affine" and again.head.out_channels == 12
+    assert Compositor.for_state(Compositor(width=8).state_dict()).enc1.out_channels == 8
+    with pytest.raises(ValueError, match="head"):
+        Compositor(head="quadratic")
+
+
 def test_composite_hwc_without_compositor_is_the_clamped_sum():
     template = torch.tensor([[[0.2, 0.5, 0.9]]])
     mod = torch.tensor([[[0.3, -0.7, 0.4]]])
@@ -157,15 +201,18 @@ def _grads(*modules) -> list[torch.Tensor]:
     return [p.grad.clone() for m in modules for p in m.parameters() if p.requires_grad]
 
 
-@pytest.mark.parametrize("cond_dim, plain", [(0, False), (4, False), (0, True)])
-def test_deferred_gradients_equal_direct_backpropagation(cond_dim, plain):
+@pytest.mark.parametrize(
+    "cond_dim, plain, head",
+    [(0, False, "residual"), (4, False, "residual"), (0, True, "residual"), (4, False, "affine")],
+)
+def test_deferred_gradients_equal_direct_backpropagation(cond_dim, plain, head):
     """Two images through F_dT (position only, or reading per-sample features) and the
     compositor, an image-space loss mixing all pixels (plain: also a loss on I_o + I_m before
     the compositor, `--w-plain`): the parameter gradients of deferred back-propagation in tiles
     of 4 px (halo 8, F_dT on 5 samples at a time) equal those of direct back-propagation through
-    the whole images at once."""
+    the whole images at once (either compositor head)."""
     torch.manual_seed(0)
-    texture, comp = TextureField(SMALL_GRID, cond_dim=cond_dim), Compositor()
+    texture, comp = TextureField(SMALL_GRID, cond_dim=cond_dim), Compositor(head=head)
     with torch.no_grad():  # leave the zero start so every parameter gets a gradient
         texture.mlp[-1].weight.normal_(0, 0.5)
         comp.head.weight.normal_(0, 0.5)
