@@ -81,7 +81,7 @@ class Compositor(nn.Module):
         nn.init.zeros_(self.head.bias)
 
     @classmethod
-    def for_state(cls, state: dict) -> "Compositor":
+    def for_state(cls, state: dict) -> Compositor:
         """An untrained compositor of the shape a `state_dict` was saved from (width, head)."""
         kinds = {n: k for k, n in HEADS.items()}
         return cls(width=int(state["enc1.weight"].shape[0]), head=kinds[state["head.bias"].numel()])
