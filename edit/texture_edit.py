@@ -59,6 +59,12 @@ graph, F_dT queried in chunks of samples):
   the template; rendered into each view, the same gate is the compositor's g (its residual acts
   on the part's pixels only, on every side of the part).
 
+`--compositor-head affine` (beyond the paper): the compositor's UNet predicts a colour
+transform per pixel (A I + b in RGB) instead of a residual; its head's bias is the transform
+every pixel shares, learnt at `lr_transform` (a part's recolouring is mostly one transform, the
+same in every view: it carries to the sides and shades view K does not show; the UNet's
+per-pixel part adds what differs).
+
 `--w-plain W` (beyond the paper, off by default): the photometric term on view K's crop also on
 I_o + I_m before the compositor, so F_dT makes the change itself in 3D and the compositor refines
 it (bench/RESULTS.md: better on a one-colour part, worse on a part with varied details).
@@ -158,6 +164,12 @@ class TextureEditConfig(LoopOptions):
         high=1,
     )
     lr_compositor: float = option(5e-3, "Adam learning rate of the compositor", low=1e-12)
+    lr_transform: float = option(
+        5e-3,
+        "--compositor-head affine: Adam learning rate of the colour transform every pixel shares "
+        "(the head's bias; the UNet adds a per-pixel part to it)",
+        low=1e-12,
+    )
     lr_naive: float = option(1e-3, "naive baseline: learning rate of the colour MLP", low=1e-12)
     lr_final_factor: float = option(
         0.1, "learning rates decay exponentially to this factor", low=1e-6, high=1.0
@@ -687,9 +699,11 @@ def texture_parts(template, cfg: TextureEditConfig, device):
     ]
     state = {"editing": editing}
     if compositor is not None:
-        groups.append(
-            {"params": list(compositor.parameters()), "lr": cfg.lr_compositor, "name": "compositor"}
-        )
+        shared = [compositor.head.bias] if cfg.compositor_head == "affine" else []
+        rest = [p for p in compositor.parameters() if all(p is not q for q in shared)]
+        groups.append({"params": rest, "lr": cfg.lr_compositor, "name": "compositor"})
+        if shared:
+            groups.append({"params": shared, "lr": cfg.lr_transform, "name": "transform"})
         state["compositor"] = compositor
     return editing, compositor, state, groups
 

@@ -16,7 +16,7 @@ import torch
 from feature_run_helpers import TINY_TEXTURE_EDIT
 
 import sine_cli
-from edit.compositor import EPS, TAU, Compositor, composite_hwc
+from edit.compositor import EPS, HEADS, TAU, Compositor, composite_hwc
 from edit.deferred import assemble, deferred_backward, direct_backward, image_tiles, ray_chunks
 from edit.editing_field import EditingField, edited_query
 from edit.geometry_edit import GeometryEditConfig
@@ -147,6 +147,20 @@ def test_affine_head_starts_at_the_plain_sum_and_applies_one_colour_transform():
     assert Compositor.for_state(Compositor(width=8).state_dict()).enc1.out_channels == 8
     with pytest.raises(ValueError, match="head"):
         Compositor(head="quadratic")
+
+
+def test_affine_head_shared_transform_has_its_own_learning_rate():
+    from edit.texture_edit import texture_parts
+
+    template = TemplateField(TemplateFieldConfig(grid=SMALL_GRID))
+    cfg = TextureEditConfig(compositor_head="affine", lr_compositor=1e-3, lr_transform=0.05)
+    _, comp, _, groups = texture_parts(template, cfg, torch.device("cpu"))
+    lrs = {g["name"]: (g["lr"], g["params"]) for g in groups}
+    assert lrs["transform"][0] == 0.05 and lrs["transform"][1] == [comp.head.bias]
+    assert lrs["compositor"][0] == 1e-3 and len(lrs["compositor"][1]) == 9  # 5 convs, one bias out
+    cfg = dataclasses.replace(cfg, compositor_head="residual")
+    _, comp, _, groups = texture_parts(template, cfg, torch.device("cpu"))
+    assert [g["name"] for g in groups] == ["grid", "mlp", "compositor"]
 
 
 def test_composite_hwc_without_compositor_is_the_clamped_sum():
@@ -514,6 +528,8 @@ def test_texture_baselines_and_scene(texture_run):
     variants = (  # the cheap parts only: no DINO
         ("naive", {"method": "naive", "iterations": 40, "lr_naive": 1e-2}),
         ("sum", {"compositor": False, "tex_views": 0, "iterations": 16}),
+        ("residual", {"compositor_head": "residual", "tex_views": 0, "iterations": 16}),
+        ("affine", {"compositor_head": "affine", "tex_views": 0, "iterations": 16}),
     )
     for name, change in variants:
         cfg = dataclasses.replace(TextureEditConfig(**TINY_TEXTURE_EDIT), **change)
@@ -522,7 +538,11 @@ def test_texture_baselines_and_scene(texture_run):
         )
         saved = load_torch(run / "edits" / name / "edit_field.pt")
         assert saved["method"] == ("naive" if name == "naive" else "texture")
-        assert name == "naive" or saved["compositor"] is None
+        if name in ("residual", "affine"):  # the scene loads the compositor's head back
+            head = load_scene(run, edit=name, device="cpu").compositor.kind
+            assert head == name and saved["compositor"]["head.bias"].numel() == HEADS[name]
+        else:
+            assert name == "naive" or saved["compositor"] is None
         after = load_scene(run, edit=name, device="cpu").render_view(camera)["rgb"]
         before = read_image(run / "edits" / name / "template_view.png")
         assert np.abs(after - target)[region].mean() < np.abs(before - target)[region].mean()
