@@ -39,7 +39,7 @@ linearly. A surface's pixel is its albedo times its shading, so a linear change 
 (a hue rotation, desaturating, painting one colour over a part's shades) is one A for every
 shade: the transform learnt on view K carries to shades it did not show (a lit top, a shadowed
 side) and passes the template's detail through. The head's bias is the transform every pixel
-shares (the texture edit gives it its own, higher learning rate); the UNet's per-pixel output
+shares (the texture edit gives it its own learning rate, `--lr-transform`); the UNet's per-pixel output
 adds what differs from pixel to pixel. Starts at zero as well: I = base.
 
 Every layer is a 3x3 convolution, a x2 down- or up-sampling: the network commutes with shifts of
@@ -66,8 +66,9 @@ HEADS = {"residual": 3, "affine": 12}  # the head's output channels per kind (mo
 
 
 class Compositor(nn.Module):
-    """(I_o [B, 3, H, W], I_m [B, 3, H, W]) -> I [B, 3, H, W] in (0, 1); see the module doc.
-    `head`: "residual" (the paper's: a logit residual) or "affine" (a colour transform per pixel)."""
+    """(I_o [B, 3, H, W], I_m [B, 3, H, W]) -> I [B, 3, H, W] in (0, 1) (affine: [0, 1]); see
+    the module doc. `head`: "residual" (the paper's: a logit residual) or "affine" (a colour
+    transform per pixel)."""
 
     def __init__(self, width: int = 16, head: str = "residual"):
         super().__init__()
