@@ -39,8 +39,8 @@ linearly. A surface's pixel is its albedo times its shading, so a linear change 
 (a hue rotation, desaturating, painting one colour over a part's shades) is one A for every
 shade: the transform learnt on view K carries to shades it did not show (a lit top, a shadowed
 side) and passes the template's detail through. The head's bias is the transform every pixel
-shares (the texture edit gives it its own learning rate, `--lr-transform`); the UNet's per-pixel output
-adds what differs from pixel to pixel. Starts at zero as well: I = base.
+shares (the texture edit gives it its own learning rate, `--lr-transform`); the UNet's
+per-pixel output adds what differs from pixel to pixel. Starts at zero as well: I = base.
 
 Every layer is a 3x3 convolution, a x2 down- or up-sampling: the network commutes with shifts of
 the image by an even number of pixels and each output pixel depends on input pixels at most 7
