@@ -140,7 +140,7 @@ class TextureEditConfig(LoopOptions):
         "what the compositor's UNet predicts per pixel: residual (the paper's: a colour residual "
         "in logit space) or affine (a 3 x 3 colour transform + offset of the pixel's RGB: one "
         "transform recolours every shade of a part, seen in view K or not; held-out +0.6 dB "
-        "after 300 steps, after 600 from -0.5 to +0.6 dB by seed and object: an option)",
+        "after 300 steps, after 600 from -0.8 to +0.6 dB by seed and object: an option)",
         choices=list(HEADS),
     )
     iterations: int = option(600, "training steps", low=1)
