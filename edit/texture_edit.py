@@ -703,11 +703,13 @@ def texture_parts(template, cfg: TextureEditConfig, device):
     ]
     state = {"editing": editing}
     if compositor is not None:
-        shared = [compositor.head.bias] if cfg.compositor_head == "affine" else []
-        rest = [p for p in compositor.parameters() if all(p is not q for q in shared)]
+        shared = "head.bias" if compositor.kind == "affine" else None  # the shared transform
+        rest = [p for n, p in compositor.named_parameters() if n != shared]
         groups.append({"params": rest, "lr": cfg.lr_compositor, "name": "compositor"})
         if shared:
-            groups.append({"params": shared, "lr": cfg.lr_transform, "name": "transform"})
+            groups.append(
+                {"params": [compositor.head.bias], "lr": cfg.lr_transform, "name": "transform"}
+            )
         state["compositor"] = compositor
     return editing, compositor, state, groups
 

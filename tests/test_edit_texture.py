@@ -528,9 +528,12 @@ def test_texture_baselines_and_scene(texture_run):
     variants = (  # the cheap parts only: no DINO
         ("naive", {"method": "naive", "iterations": 40, "lr_naive": 1e-2}),
         ("sum", {"compositor": False, "tex_views": 0, "iterations": 16}),
-        ("residual", {"compositor_head": "residual", "tex_views": 0, "iterations": 16}),
         ("affine", {"compositor_head": "affine", "tex_views": 0, "iterations": 16}),
     )
+    # the default edit's compositor (the paper's head) comes back with its head
+    full = load_torch(run / "edits" / "full" / "edit_field.pt")["compositor"]
+    assert load_scene(run, edit="full", device="cpu").compositor.kind == "residual"
+    assert full["head.bias"].numel() == HEADS["residual"]
     for name, change in variants:
         cfg = dataclasses.replace(TextureEditConfig(**TINY_TEXTURE_EDIT), **change)
         run_texture_edit(
@@ -538,7 +541,7 @@ def test_texture_baselines_and_scene(texture_run):
         )
         saved = load_torch(run / "edits" / name / "edit_field.pt")
         assert saved["method"] == ("naive" if name == "naive" else "texture")
-        if name in ("residual", "affine"):  # the scene loads the compositor's head back
+        if name == "affine":  # the scene loads the compositor's head back
             head = load_scene(run, edit=name, device="cpu").compositor.kind
             assert head == name and saved["compositor"]["head.bias"].numel() == HEADS[name]
         else:
