@@ -28,8 +28,8 @@ Without one, g comes from the modification itself, g = 1 - exp(-(|I_m|_1 / TAU)^
 with I_m = 0 stays I_o (squared, so faint colours F_dT leaks elsewhere, |I_m|_1 of a few 1e-3,
 open it by less than 1 %). The output is a sigmoid, in (0, 1).
 
-Head `affine` (`sine edit --compositor-head affine`, beyond the paper): the head predicts, per
-pixel, a 3 x 3 matrix A and an offset b (12 channels), and
+Head `affine` (beyond the paper; texture edits' default, `--compositor-head residual` for the
+paper's): the head predicts, per pixel, a 3 x 3 matrix A and an offset b (12 channels), and
 
     I = clamp(base + g * (A base + b), 0, 1)      base = I_o + I_m
 

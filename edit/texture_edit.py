@@ -59,11 +59,13 @@ graph, F_dT queried in chunks of samples):
   the template; rendered into each view, the same gate is the compositor's g (its output acts
   on the part's pixels only, on every side of the part).
 
-`--compositor-head affine` (beyond the paper, an option): the compositor's UNet predicts a
+`--compositor-head affine` (beyond the paper, the default): the compositor's UNet predicts a
 colour transform per pixel (A I + b in RGB) instead of a residual (`residual`, the paper's);
 its head's bias is the transform every pixel shares, learnt at `lr_transform` (a part's
 recolouring is mostly one transform, the same in every view: it carries to the sides and
-shades view K does not show; the UNet's per-pixel part adds what differs).
+shades view K does not show; the UNet's per-pixel part adds what differs). The UNet learns at
+half the residual head's rate (`COMPOSITOR_LR`): at the residual head's rate its per-pixel
+part drifts after 300 steps (red streaks on the toycar's edges, bench/RESULTS.md).
 
 `--w-plain W` (beyond the paper, off by default): the photometric term on view K's crop also on
 I_o + I_m before the compositor, so F_dT makes the change itself in 3D and the compositor refines
@@ -136,11 +138,11 @@ class TextureEditConfig(LoopOptions):
         True, "blend I_o and I_m with the 2D compositor (--no-compositor: I_o + I_m, a baseline)"
     )
     compositor_head: str = option(
-        "residual",
-        "what the compositor's UNet predicts per pixel: residual (the paper's: a colour residual "
-        "in logit space) or affine (a 3 x 3 colour transform + offset of the pixel's RGB: one "
-        "transform recolours every shade of a part, seen in view K or not; held-out +0.6 dB "
-        "after 300 steps, after 600 from -0.8 to +0.6 dB by seed and object: an option)",
+        "affine",
+        "what the compositor's UNet predicts per pixel: affine (a 3 x 3 colour transform + "
+        "offset of the pixel's RGB: one transform recolours every shade of a part, seen in view "
+        "K or not; held-out +0.03 to +0.84 dB over the paper's head on every object and seed "
+        "measured) or residual (the paper's: a colour residual in logit space)",
         choices=list(HEADS),
     )
     iterations: int = option(600, "training steps", low=1)
@@ -164,13 +166,18 @@ class TextureEditConfig(LoopOptions):
         low=0,
         high=1,
     )
-    lr_compositor: float = option(5e-3, "Adam learning rate of the compositor", low=1e-12)
+    lr_compositor: float | None = option(
+        None,
+        "Adam learning rate of the compositor's UNet (None: 2.5e-3 with the affine head, 5e-3 "
+        "with the residual head)",
+        low=1e-12,
+    )
     lr_transform: float = option(
         5e-3,
         "--compositor-head affine: Adam learning rate of the colour transform every pixel shares "
         "(the head's bias; the UNet adds a per-pixel part to it). Higher (0.05) recolours the "
         "whole editable part alike: better where the part is exactly what changes (toycar "
-        "seed 0 +0.35 dB), but it spills over what the semantic masks include and the user did not "
+        "seed 0 +0.35 dB, UNet at 5e-3), but it spills over what the semantic masks include and the user did not "
         "paint (spot: unedited 27 dB)",
         low=1e-12,
     )
@@ -282,11 +289,15 @@ RUNTIME_KEYS = (*LOOP_RUNTIME_KEYS, "previews", "chunk")
 # Options added after edits were recorded whose default is not what those edits did: a run
 # recorded without them counts as having had these values (so it is redone, not reused).
 RECORDED_BEFORE = {
+    "compositor_head": "residual",
     "template_feature": False,
     "keep_seen": False,
     "w_color": 0.0,
     "reference_mask": "none",
 }
+
+# The compositor UNet's learning rate by head (`lr_compositor` None).
+COMPOSITOR_LR = {"residual": 5e-3, "affine": 2.5e-3}
 
 REFERENCE_COLORS = 65536  # pixels of a reference photo the colour term compares with, at most
 
@@ -347,10 +358,17 @@ def reference_object(rgb: np.ndarray, method: str) -> np.ndarray | None:
     return None if keyed is None else keyed.astype(np.float32)
 
 
+def compositor_lr(cfg: TextureEditConfig) -> float:
+    """The compositor UNet's learning rate: `lr_compositor`, or its head's default."""
+    chosen = cfg.lr_compositor
+    return COMPOSITOR_LR[cfg.compositor_head] if chosen is None else chosen
+
+
 def options_in_effect(cfg: TextureEditConfig, reference) -> TextureEditConfig:
-    """`cfg` as it acts on an edit: without a reference photo the colour term is off and no
-    photo is masked (and they are recorded so: edits from a repainted view made before those
-    options existed are reused, not redone)."""
+    """`cfg` as it acts on an edit: the compositor's learning rate resolved for its head; without
+    a reference photo the colour term is off and no photo is masked (and they are recorded so:
+    edits from a repainted view made before those options existed are reused, not redone)."""
+    cfg = replace(cfg, lr_compositor=compositor_lr(cfg))
     if reference is not None:
         return cfg
     return replace(cfg, w_color=0.0, reference_mask="none")
@@ -705,7 +723,7 @@ def texture_parts(template, cfg: TextureEditConfig, device):
     if compositor is not None:
         shared = "head.bias" if compositor.kind == "affine" else None  # the shared transform
         rest = [p for n, p in compositor.named_parameters() if n != shared]
-        groups.append({"params": rest, "lr": cfg.lr_compositor, "name": "compositor"})
+        groups.append({"params": rest, "lr": compositor_lr(cfg), "name": "compositor"})
         if shared:
             groups.append(
                 {"params": [compositor.head.bias], "lr": cfg.lr_transform, "name": "transform"}

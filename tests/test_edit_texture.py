@@ -161,6 +161,11 @@ def test_affine_head_shared_transform_has_its_own_learning_rate():
     cfg = dataclasses.replace(cfg, compositor_head="residual")
     _, comp, _, groups = texture_parts(template, cfg, torch.device("cpu"))
     assert [g["name"] for g in groups] == ["grid", "mlp", "compositor"]
+    # without lr_compositor the UNet learns at its head's rate: the affine head's is half
+    for head, lr in (("affine", 2.5e-3), ("residual", 5e-3)):
+        cfg = TextureEditConfig(compositor_head=head)
+        _, _, _, groups = texture_parts(template, cfg, torch.device("cpu"))
+        assert {g["name"]: g["lr"] for g in groups}["compositor"] == lr
 
 
 def test_composite_hwc_without_compositor_is_the_clamped_sum():
@@ -506,18 +511,21 @@ def test_interrupted_texture_edit_resumes_bit_exactly(texture_run):
     saved = torch.load(path, weights_only=True)
     recorded = json.loads(saved["config"])
     assert recorded["w_color"] == 0.0 and recorded["reference_mask"] == "none"
+    assert recorded["compositor_head"] == "affine" and recorded["lr_compositor"] == 2.5e-3
     del recorded["w_color"], recorded["reference_mask"]
     saved["config"] = json.dumps(recorded)
     torch.save(saved, path)
     assert run_texture_edit(*args, **kwargs)["skipped"]
-    # an edit recorded before F_dT read the template's feature had a position-only F_dT: it is
-    # redone with the new default, not reused (nor resumed into a field of another shape)
-    saved = torch.load(path, weights_only=True)
-    recorded = json.loads(saved["config"])
-    del recorded["template_feature"]
-    saved["config"] = json.dumps(recorded)
-    torch.save(saved, path)
-    assert run_texture_edit(*args, **kwargs, stop_at=1) == {"step": 1}
+    # an edit recorded before F_dT read the template's feature had a position-only F_dT, one
+    # recorded before the compositor's head was an option had the paper's head: each is redone
+    # with the new default, not reused (nor resumed into a field of another shape)
+    original = torch.load(path, weights_only=True)
+    for key in ("template_feature", "compositor_head"):
+        recorded = json.loads(original["config"])
+        del recorded[key]
+        torch.save({**original, "config": json.dumps(recorded)}, path)
+        shutil.rmtree(run / "edits" / "resumed.partial", ignore_errors=True)
+        assert run_texture_edit(*args, **kwargs, stop_at=1) == {"step": 1}, key
 
 
 def test_texture_baselines_and_scene(texture_run):
@@ -528,12 +536,12 @@ def test_texture_baselines_and_scene(texture_run):
     variants = (  # the cheap parts only: no DINO
         ("naive", {"method": "naive", "iterations": 40, "lr_naive": 1e-2}),
         ("sum", {"compositor": False, "tex_views": 0, "iterations": 16}),
-        ("affine", {"compositor_head": "affine", "tex_views": 0, "iterations": 16}),
+        ("residual", {"compositor_head": "residual", "tex_views": 0, "iterations": 16}),
     )
-    # the default edit's compositor (the paper's head) comes back with its head
+    # the default edit's compositor (the affine head) comes back with its head
     full = load_torch(run / "edits" / "full" / "edit_field.pt")["compositor"]
-    assert load_scene(run, edit="full", device="cpu").compositor.kind == "residual"
-    assert full["head.bias"].numel() == HEADS["residual"]
+    assert load_scene(run, edit="full", device="cpu").compositor.kind == "affine"
+    assert full["head.bias"].numel() == HEADS["affine"]
     for name, change in variants:
         cfg = dataclasses.replace(TextureEditConfig(**TINY_TEXTURE_EDIT), **change)
         run_texture_edit(
@@ -541,7 +549,7 @@ def test_texture_baselines_and_scene(texture_run):
         )
         saved = load_torch(run / "edits" / name / "edit_field.pt")
         assert saved["method"] == ("naive" if name == "naive" else "texture")
-        if name == "affine":  # the scene loads the compositor's head back
+        if name == "residual":  # the scene loads the compositor's head back
             head = load_scene(run, edit=name, device="cpu").compositor.kind
             assert head == name and saved["compositor"]["head.bias"].numel() == HEADS[name]
         else:
