@@ -177,8 +177,8 @@ class TextureEditConfig(LoopOptions):
         "--compositor-head affine: Adam learning rate of the colour transform every pixel shares "
         "(the head's bias; the UNet adds a per-pixel part to it). Higher (0.05) recolours the "
         "whole editable part alike: better where the part is exactly what changes (toycar "
-        "seed 0 +0.35 dB, UNet at 5e-3), but it spills over what the semantic masks include and the user did not "
-        "paint (spot: unedited 27 dB)",
+        "seed 0 +0.35 dB, UNet at 5e-3), but it spills over what the semantic masks include "
+        "and the user did not paint (spot: unedited 27 dB)",
         low=1e-12,
     )
     lr_naive: float = option(1e-3, "naive baseline: learning rate of the colour MLP", low=1e-12)
