@@ -141,7 +141,7 @@ class TextureEditConfig(LoopOptions):
         "affine",
         "what the compositor's UNet predicts per pixel: affine (a 3 x 3 colour transform + "
         "offset of the pixel's RGB: one transform recolours every shade of a part, seen in view "
-        "K or not; held-out +0.03 to +0.84 dB over the paper's head on every object and seed "
+        "K or not; held-out +0.03 to +1.1 dB over the paper's head on every object and seed "
         "measured) or residual (the paper's: a colour residual in logit space)",
         choices=list(HEADS),
     )
