@@ -3,7 +3,8 @@
 Stages (each the library function behind its own command; each skips finished work):
 
     synth     a synthetic turntable with ground truth and GT edits            (`sine synth`)
-    recon     poses by SfM (the synthetic poses are ignored), proxy mesh      (`sine recon`)
+    recon     poses by SfM (the synthetic poses are ignored; the figurine keeps
+              them: see --procedural), proxy mesh                             (`sine recon`)
     fit       the template radiance field                                     (`sine fit`)
     features  the DINO feature field                                          (`sine features`)
     masks     semantic masks of the part painted in view K, scored against
@@ -48,6 +49,13 @@ from render.io import read_json, read_label_map, read_mask, require_directory, w
 
 # The part painted by default: the one the object's ground-truth geometric edit stretches.
 DEFAULT_PART = {"toycar": "cabin", "figurine": "head"}
+# Objects the demo poses from their images (SfM, or the turntable model from the silhouettes).
+# The figurine is not one: a body of revolution whose stripes are rings around its axis, so its
+# silhouettes and three in four of its SIFT matches are the same after any turn (SfM's models
+# are degenerate, the turntable model cannot fix the angles, the camera's elevation nor the
+# focal length: bench/RESULTS.md "Self-checks and the turntable pose model"); its demo keeps
+# the capture's poses and intrinsics.
+POSED_BY_SFM = ("toycar",)
 EDIT_NAME = "geometric"  # RUN/edits/geometric, learnt from the synth's edits/geometric view K
 TEXTURE_NAME = "texture"  # RUN/edits/texture, learnt from a recoloured capture of view K
 MASKS_EDIT = "demo"  # RUN/edits/demo/semantic_masks (the masks stage)
@@ -97,7 +105,13 @@ class DemoConfig:
     fast: bool = option(
         False, "fewer views, a lower working resolution and fewer steps (minutes; for tests)"
     )
-    procedural: str = option("toycar", "built-in object to use", choices=["toycar", "figurine"])
+    procedural: str = option(
+        "toycar",
+        "built-in object to use; the figurine is a body of revolution with ring stripes, whose "
+        "turns no method recovers from its images (silhouettes and stripes look the same from "
+        "every side), so its demo keeps the capture's poses",
+        choices=["toycar", "figurine"],
+    )
     views: int | None = option(None, "turntable views to render (default 36; --fast 24)", low=3)
     width: int = option(256, "synthetic image width in pixels (SfM runs on these)", low=16)
     height: int = option(256, "synthetic image height in pixels", low=16)
@@ -191,7 +205,7 @@ def stage_configs(cfg: DemoConfig) -> dict:
             edit=["geometric", "texture"],
         ),
         "recon": ReconConfig(**base["recon"]),
-        "ingest": IngestConfig(width=cfg.run_width, ignore_poses=True),
+        "ingest": IngestConfig(width=cfg.run_width, ignore_poses=cfg.procedural in POSED_BY_SFM),
         "fit": FitConfig(**dev, **base["fit"]),
         "features": FeaturesConfig(**dev, **base["features"]),
         "masks": MasksConfig(**dev),

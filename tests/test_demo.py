@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from edit.demo import DemoConfig, check_options
+from edit.demo import DemoConfig, check_options, resolved, stage_configs
 from sine_cli import main
 
 
@@ -35,6 +35,14 @@ def test_auto_paint_part_follows_the_object(tmp_path):
     assert check_options(DemoConfig(out=tmp_path, procedural="toycar")) == "cabin"
     assert check_options(DemoConfig(out=tmp_path, procedural="figurine")) == "head"
     assert check_options(DemoConfig(out=tmp_path, procedural="figurine", paint_part="hat")) == "hat"
+
+
+def test_the_figurine_demo_keeps_the_capture_poses(tmp_path):
+    """The toycar is posed from its images (SfM / turntable model); the figurine, a body of
+    revolution with ring stripes that nothing poses from its images, keeps the capture's."""
+    for name, ignored in (("toycar", True), ("figurine", False)):
+        cfg = resolved(DemoConfig(out=tmp_path, procedural=name, fast=True))
+        assert stage_configs(cfg)["ingest"].ignore_poses is ignored
 
 
 # ---- end to end ---------------------------------------------------------------------------
