@@ -382,6 +382,33 @@ def test_the_proxy_is_refined_by_default_only_when_it_was_estimated(tmp_path):
     assert resolve_preset(FitConfig(refine_proxy=0.0), run).refine_proxy == 0.0
 
 
+def test_the_masks_edge_is_box_filtered_by_default_only_when_the_capture_brought_its_masks(
+    tmp_path,
+):
+    from recon.fit import resolve_preset
+    from render.io import write_json
+
+    run = RunDir(tmp_path / "run")
+    run.root.mkdir()
+
+    def chosen(cfg: FitConfig) -> tuple[int, str]:
+        out = resolve_preset(cfg, run)
+        return out.train_supersample, out.supersample_pixels
+
+    assert chosen(FitConfig()) == (1, "all")  # no report: nothing known
+    for given, estimated, expected in (
+        (36, 0, (2, "edge")),
+        (30, 6, (1, "all")),
+        (0, 36, (1, "all")),
+    ):
+        write_json(run.recon_report, {"masks_given": given, "masks_automatic": estimated})
+        assert chosen(FitConfig()) == expected
+    write_json(run.recon_report, {"masks_given": 36, "masks_automatic": 0})
+    assert chosen(FitConfig(train_supersample=1)) == (1, "all")  # the user's choice stands
+    assert chosen(FitConfig(train_supersample=2)) == (2, "all")  # as before the rule
+    assert chosen(FitConfig(supersample_pixels="error")) == (2, "error")
+
+
 def test_silhouette_edge_marks_the_rings_on_both_sides_of_the_boundary():
     from recon.fit import silhouette_edge
 
