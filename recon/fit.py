@@ -185,7 +185,7 @@ class FitConfig(LoopOptions):
         "the rays, so a batch holds fewer pixels. None: 2 on the pixels of the masks' edge "
         "(--supersample-pixels edge) when every view's mask came with the capture (renders, "
         "RGBA alpha: the boundary is where a pixel is part object; toycar/spot/figurine +0.8 / "
-        "+1.3 / +0.2 dB held-out object PSNR), else 1 (masks the recon estimated: the "
+        "+1.3 / +0.2-0.6 dB held-out object PSNR), else 1 (masks the recon estimated: the "
         "dinosaur and the temple lose 0.1-0.2 dB with it)",
         low=1,
         high=4,
