@@ -64,14 +64,12 @@ EDGE_SUPERSAMPLE = 2  # rays per side on the masks' edge pixels when the masks a
 FALLBACK_MAX_RESOLUTION = 512  # --max-resolution without views to match it to
 
 
-def masks_from_capture(run: RunDir | None) -> bool:
-    """Whether every view's mask came with the capture (a mask file or RGBA alpha; from
-    recon_report.json), i.e. none was estimated by `sine recon`: renders' and alpha masks are
-    the pixels' coverage, so their boundary is where a pixel is part object, part background
-    (the box filter's `edge` pixels); estimated masks are not that exact."""
-    if run is None or not run.recon_report.is_file():
-        return False
-    report = read_json(run.recon_report)
+def masks_from_capture(report: dict) -> bool:
+    """Whether every view's mask came with the capture (a mask file or RGBA alpha), by the
+    run's recon_report.json ({} when there is none), i.e. none was estimated by `sine recon`:
+    renders' and alpha masks are the pixels' coverage, so their boundary is where a pixel is
+    part object, part background (the box filter's `edge` pixels); estimated masks are not
+    that exact."""
     return report.get("masks_automatic", 1) == 0 and report.get("masks_given", 0) > 0
 
 
@@ -251,14 +249,15 @@ def resolve_preset(cfg: FitConfig, run: RunDir | None = None) -> FitConfig:
     if preset is None:
         raise SineError(f"--preset must be one of {', '.join(PRESETS)} (got {cfg.preset!r})")
     chosen = {k: v for k, v in preset.items() if getattr(cfg, k) is None}
+    report = {}
+    if run is not None and run.recon_report.is_file():
+        report = read_json(run.recon_report)
     if cfg.refine_proxy is None:
-        source = None
-        if run is not None and run.recon_report.is_file():
-            source = read_json(run.recon_report).get("depth_source")
+        source = report.get("depth_source")
         estimated = source is not None and source != "dataset"
         chosen["refine_proxy"] = DEFAULT_REFINE_AT if estimated else 0.0
     if cfg.train_supersample is None:
-        exact = masks_from_capture(run)
+        exact = masks_from_capture(report)
         chosen["train_supersample"] = EDGE_SUPERSAMPLE if exact else 1
         if cfg.supersample_pixels is None:
             chosen["supersample_pixels"] = "edge" if exact else "all"
