@@ -55,7 +55,7 @@ DEFAULT_PART = {"toycar": "cabin", "figurine": "head"}
 # are degenerate, the turntable model cannot fix the angles, the camera's elevation nor the
 # focal length: bench/RESULTS.md "Self-checks and the turntable pose model"); its demo keeps
 # the capture's poses and intrinsics.
-POSED_BY_SFM = ("toycar",)
+POSED_FROM_IMAGES = ("toycar",)
 EDIT_NAME = "geometric"  # RUN/edits/geometric, learnt from the synth's edits/geometric view K
 TEXTURE_NAME = "texture"  # RUN/edits/texture, learnt from a recoloured capture of view K
 MASKS_EDIT = "demo"  # RUN/edits/demo/semantic_masks (the masks stage)
@@ -205,7 +205,9 @@ def stage_configs(cfg: DemoConfig) -> dict:
             edit=["geometric", "texture"],
         ),
         "recon": ReconConfig(**base["recon"]),
-        "ingest": IngestConfig(width=cfg.run_width, ignore_poses=cfg.procedural in POSED_BY_SFM),
+        "ingest": IngestConfig(
+            width=cfg.run_width, ignore_poses=cfg.procedural in POSED_FROM_IMAGES
+        ),
         "fit": FitConfig(**dev, **base["fit"]),
         "features": FeaturesConfig(**dev, **base["features"]),
         "masks": MasksConfig(**dev),
