@@ -5,10 +5,12 @@ training ray once against the proxy (and its inflated copy) and trains only on t
 it (the others are background and need no field). Trains with `recon.training.Trainer` in
 RUN/template.partial/ and, once finished, moves that to RUN/template/:
 
-    checkpoint.pt      the training state (field, background, optimizer, schedule, step, RNG
-                       states); written atomically every `checkpoint_every` steps and every
-                       `checkpoint_seconds`; a re-run resumes from it (`--force` starts over)
-    field.pt           the final field for later stages (`load_template`; configs as JSON text,
+    checkpoint.pt      the training state (field, its moving average, background, optimizer,
+                       schedule, step, RNG states); written atomically every `checkpoint_every`
+                       steps and every `checkpoint_seconds`; a re-run resumes from it
+                       (`--force` starts over)
+    field.pt           the final field for later stages, the moving average of the last steps'
+                       weights (`--average-window`; `load_template`; configs as JSON text,
                        loads with weights_only=True)
     metrics.json       held-out PSNR/SSIM on object pixels (heldout_psnr_object, the headline)
                        and whole images (heldout_psnr, heldout_ssim), rays/s, samples/s, ...
@@ -110,6 +112,15 @@ class FitConfig(LoopOptions):
     lr_mlp: float = option(1e-2, "Adam learning rate of the MLP heads", low=0.0)
     lr_final_factor: float = option(
         0.1, "learning rates decay exponentially to this factor", low=0.0, high=1.0
+    )
+    average_window: float = option(
+        0.07,
+        "the saved field is a moving average of the weights over about this fraction of the "
+        "last steps (exponential, decay 1 - 1 / (fraction x steps) per step, from half-way: "
+        "~100 steps of the default 1500), against the noise of the last random batches "
+        "(0: the last step's weights)",
+        low=0.0,
+        high=0.5,
     )
     log2_table: int | None = option(
         None,
@@ -518,6 +529,18 @@ def refine_with_field(
     return mesh, plain
 
 
+def field_average(field: TemplateField, window: float, iterations: int):
+    """An exponential moving average of `field`'s parameters over about `window` x
+    `iterations` steps (torch's AveragedModel: the first `update_parameters` copies them, each
+    later one moves the average by 1 / (window x iterations) towards them); buffers are not
+    averaged (the field's are fixed). Started half-way, the first copy's weight in the end is
+    exp(-0.5 / window): 0.0008 at 0.07, whatever the step count."""
+    decay = 1.0 - 1.0 / max(1.0, window * iterations)
+    return torch.optim.swa_utils.AveragedModel(
+        field, multi_avg_fn=torch.optim.swa_utils.get_ema_multi_avg_fn(decay)
+    )
+
+
 def store_appearance(field: TemplateField, codes: torch.Tensor, cameras) -> None:
     """Keeps the fitted codes [V, A] and their views' directions in the field; the default
     code becomes their mean (a neutral light)."""
@@ -588,6 +611,10 @@ def evaluate(
 
 
 # ---- training ---------------------------------------------------------------------------------
+# Options added after fits were recorded whose default is not what those fits did: a run
+# recorded without them counts as having had these values (so it is fitted again, not reused).
+RECORDED_BEFORE = {"average_window": 0.0}
+
 # Settings that do not change the result: a checkpoint made with other values still resumes.
 _RUNTIME_KEYS = RUNTIME_KEYS + (
     "eval_chunk",
@@ -631,7 +658,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         force=force,
         progress=progress,
         advice="lower learning rates (e.g. half of --lr-grid and --lr-mlp)",
-        defaults=to_dict(FitConfig()),
+        defaults={**to_dict(FitConfig()), **RECORDED_BEFORE},
     )
     done = trainer.finished()  # before any data is loaded: a finished fit costs nothing
     if done is not None:
@@ -664,6 +691,9 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     behind_capture = pool.has_masks and (
         cfg.background == "capture" or (cfg.background == "auto" and bg_learn)
     )
+    averaged = None  # the moving average of the weights, from half-way (--average-window)
+    if cfg.average_window > 0:
+        averaged = field_average(field, cfg.average_window, cfg.iterations)
     groups = field.param_groups(cfg.lr_grid, cfg.lr_mlp)
     if bg_learn:
         groups.append(
@@ -671,14 +701,17 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         )
     if cfg.appearance_dim:
         groups.append({"params": [codes], "lr": cfg.lr_mlp, "name": "appearance"})
+    state = {
+        "field": field,
+        "background": background,
+        "ray_errors": pool.errors,
+        "codes": codes,
+        "proxy": proxy_state,
+    }
+    if averaged is not None:
+        state["averaged"] = averaged
     trainer.start(
-        {
-            "field": field,
-            "background": background,
-            "ray_errors": pool.errors,
-            "codes": codes,
-            "proxy": proxy_state,
-        },
+        state,
         groups,
         lr_final_factor=cfg.lr_final_factor,
     )
@@ -690,8 +723,11 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     box_part = cfg.error_sampling if cfg.supersample_pixels == "error" else 1.0
     by_edge = cfg.supersample_pixels == "edge"
     edge_share = [float(pool.edge.float().mean())]  # of the last batch's pixels ("edge")
+    average_from = cfg.iterations // 2 if averaged is not None else None
 
     def step(i: int) -> dict[str, torch.Tensor]:
+        if average_from is not None and i >= average_from:  # the weights after i steps
+            averaged.update_parameters(field)
         boxed_fraction = box_part if i >= box_from else 0.0
         if by_edge:
             boxed_fraction = edge_share[0] if i >= box_from else 0.0
@@ -775,6 +811,13 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         field.train()
     if not trainer.run(step, stop_at):  # stopped early on purpose
         return {"step": trainer.step}
+    if average_from is not None and trainer.step > average_from:  # the last step's weights too
+        averaged.update_parameters(field)
+        with torch.no_grad():
+            for weights, average in zip(
+                field.parameters(), averaged.module.parameters(), strict=True
+            ):
+                weights.copy_(average)
     if cfg.appearance_dim:
         store_appearance(field, codes.detach(), [cam for cam, _, _ in train_views])
     for entry in trainer.log:

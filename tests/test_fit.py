@@ -470,3 +470,34 @@ def test_box_filtered_training_fits_the_pixels_it_averages(tiny_run, tmp_path, m
     metrics = fit_template(run.root, cfg, progress=False)
     assert calls == [(64, 2)] * 100
     assert metrics["heldout_psnr"] > 25.0
+
+
+def test_the_saved_field_is_the_moving_average_of_the_last_steps(tiny_run, tmp_path):
+    """A window of 0.25 of 10 steps: decay d = 1 - 1 / 2.5 = 0.6; field.pt holds a_10 with
+    a_5 = w_5 (half-way), a_k = d a_(k-1) + (1 - d) w_k (w_k: the weights after k steps);
+    every stop and resume in between keeps the average."""
+    decay = 0.6
+    cfg = FitConfig(iterations=10, average_window=0.25, **TINY)
+    run = _copy(tiny_run, tmp_path / "run")
+    weights = {}
+    for k in range(5, 11):
+        fit_template(run.root, cfg, progress=False, stop_at=k if k < 10 else None)
+        folder = run.template if k == 10 else run.root / "template.partial"
+        saved = torch.load(folder / "checkpoint.pt", weights_only=True)
+        assert saved["step"] == k
+        weights[k] = saved["state"]["field"]["state_dict"]
+    expected = dict(weights[5])
+    for k in range(6, 11):
+        expected = {n: decay * a + (1 - decay) * weights[k][n] for n, a in expected.items()}
+    field = torch.load(run.template / "field.pt", weights_only=True)["field"]
+    moved = 0
+    for name, value in field.items():
+        torch.testing.assert_close(value, expected[name], rtol=1e-5, atol=1e-6)
+        moved += int(not torch.equal(value, weights[10][name]))
+    assert moved > 0  # the average is not the last step's weights
+    # without the average, field.pt is the last step's weights
+    plain = _copy(tiny_run, tmp_path / "plain")
+    fit_template(plain.root, FitConfig(iterations=10, average_window=0.0, **TINY), progress=False)
+    last = torch.load(plain.template / "checkpoint.pt", weights_only=True)["state"]["field"]
+    for name, value in torch.load(plain.template / "field.pt", weights_only=True)["field"].items():
+        torch.testing.assert_close(value, last["state_dict"][name], rtol=0, atol=0)
