@@ -68,7 +68,9 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return 10.0 * np.log10(1.0 / max(mse, 1e-12))
 
 
-def prepare_object(name, work: Path, size, views, fit_iterations, features: bool):
+def prepare_object(
+    name, work: Path, size, views, fit_iterations, features: bool, fit_options: dict | None = None
+):
     from edit.feature_field_fit import FeaturesConfig, distill_features
     from recon.fit import FitConfig, fit_template
     from recon.ingest import IngestConfig
@@ -85,7 +87,7 @@ def prepare_object(name, work: Path, size, views, fit_iterations, features: bool
         )
     if not run.proxy_mesh.is_file():
         run_recon(syn, run, ReconConfig(), IngestConfig(width=size))
-    fit_cfg = FitConfig(previews=0)
+    fit_cfg = FitConfig(previews=0, **(fit_options or {}))
     if fit_iterations is not None:
         fit_cfg.iterations = fit_iterations
     fit = fit_template(run.root, fit_cfg, progress=False)
@@ -341,7 +343,7 @@ def unaligned(args, obj: str, reference: str) -> dict:
 
     work = args.out / obj
     syn, run, _ = prepare_object(
-        obj, work, args.size, args.views, args.fit_iterations, not args.no_features
+        obj, work, args.size, args.views, args.fit_iterations, not args.no_features, args.fit_set
     )
     photo, given = reference_photo(reference, args.out, args.size, args.reference_backdrop)
     k = pick_edit_view(run, syn)
@@ -414,6 +416,14 @@ def main() -> int:
         metavar="KEY=VALUE",
         help="texture-edit options for every method (e.g. w_cls=1e-3); VALUE is read as JSON",
     )
+    ap.add_argument(
+        "--fit-set",
+        nargs="+",
+        default=[],
+        metavar="KEY=VALUE",
+        help="template (`sine fit`) options, e.g. seed=1 average_window=0.15: how much an edit "
+        "depends on its template (one run folder per template: give each its own --out)",
+    )
     ap.add_argument("--tag", default="", help="suffix of the edits' names (variants side by side)")
     ap.add_argument(
         "--reference",
@@ -429,6 +439,7 @@ def main() -> int:
     ap.add_argument("--memory", type=Path, help="measure one step's peak memory on this RUN")
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512], help="--memory sizes")
     args = ap.parse_args()
+    args.fit_set = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in args.fit_set)}
     args.out.mkdir(parents=True, exist_ok=True)
     if args.memory is not None:
         memory_bench(args.memory, args.sizes, args.out)
@@ -457,7 +468,13 @@ def main() -> int:
         t0 = time.perf_counter()
         work = args.out / obj
         syn, run, fit = prepare_object(
-            obj, work, args.size, args.views, args.fit_iterations, not args.no_features
+            obj,
+            work,
+            args.size,
+            args.views,
+            args.fit_iterations,
+            not args.no_features,
+            args.fit_set,
         )
         print(
             f"[{obj}] template: held-out PSNR {fit.get('heldout_psnr', float('nan')):.2f} dB, "

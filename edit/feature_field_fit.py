@@ -361,6 +361,7 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
         progress=progress,
         advice="lower learning rates (e.g. half of --lr-grid and --lr-mlp)",
         defaults=to_dict(FeaturesConfig()),
+        inputs=run.inputs("cameras.json", "images", "proxy_mesh.ply", "template/field.pt"),
     )
     done = trainer.finished()  # before the template, the views and DINO are loaded
     if done is not None:

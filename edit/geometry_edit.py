@@ -272,6 +272,11 @@ def save_prior(out: Path, prior: PriorMesh, run: RunDir) -> None:
 
 
 # ---- training -----------------------------------------------------------------------------
+# what an edit is made from besides the user's files: an edit of a template fitted again since
+# (or of a run whose recon changed) is learnt again
+EDIT_INPUTS = ("cameras.json", "proxy_mesh.ply", "template/field.pt")
+
+
 def input_digests(target, mask, region) -> dict:
     """The user's files by path and content (an image edited in place is a new edit)."""
     out = {}
@@ -540,6 +545,7 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
         progress=progress,
         advice="a lower --lr-deform (or --lr-naive)",
         defaults={**to_dict(GeometryEditConfig()), **RECORDED_BEFORE},
+        inputs=run.inputs(*EDIT_INPUTS),
     )
     done = trainer.finished()
     if done is not None:

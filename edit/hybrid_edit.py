@@ -203,6 +203,7 @@ def _edit(
             **{f"geometry.{k}": v for k, v in geometry_edit.RECORDED_BEFORE.items()},
             **{f"texture.{k}": v for k, v in texture_edit.RECORDED_BEFORE.items()},
         },
+        inputs=run.inputs(*texture_edit.TEXTURE_INPUTS),
     )
     done = trainer.finished()
     if done is not None:

@@ -92,7 +92,7 @@ from edit.compositor import HALO, HEADS, Compositor, composite_hwc
 from edit.deferred import DeferredImage, deferred_backward, image_tiles
 from edit.edit_inputs import difference_region, read_region, read_target
 from edit.editing_field import EditingField
-from edit.geometry_edit import input_digests
+from edit.geometry_edit import EDIT_INPUTS, input_digests
 from edit.geometry_losses import photometric
 from edit.texture_views import (
     LiftedRegion,
@@ -124,6 +124,8 @@ from render.renderer import render_rays
 from render.template_field import freeze
 
 METHODS = ("ours", "naive")
+# the semantic masks come from the feature field: distilled again, the edit is learnt again
+TEXTURE_INPUTS = (*EDIT_INPUTS, "features/field.pt")
 
 
 @dataclass
@@ -557,6 +559,7 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
         manual_backward=cfg.method == "ours",
         advice="lower learning rates (--lr-grid, --lr-compositor, --lr-naive)",
         defaults={**to_dict(TextureEditConfig()), **RECORDED_BEFORE},
+        inputs=run.inputs(*TEXTURE_INPUTS),
     )
     done = trainer.finished()
     if done is not None:

@@ -649,6 +649,10 @@ def fit_template(
         return _fit(run, cfg, device, force, progress, stop_at)
 
 
+# what a template is made from: a run whose recon changed them is fitted again
+FIT_INPUTS = ("cameras.json", "proxy_mesh.ply", "images", "masks")
+
+
 def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_at) -> dict:
     t_start = time.perf_counter()
     trainer = Trainer(
@@ -661,6 +665,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         progress=progress,
         advice="lower learning rates (e.g. half of --lr-grid and --lr-mlp)",
         defaults={**to_dict(FitConfig()), **RECORDED_BEFORE},
+        inputs=run.inputs(*FIT_INPUTS),
     )
     done = trainer.finished()  # before any data is loaded: a finished fit costs nothing
     if done is not None:

@@ -76,6 +76,11 @@ class RunDir:
     def depth_path(self, name: str) -> Path:
         return self.depth / (Path(name).stem + ".npy")
 
+    def inputs(self, *names: str) -> dict[str, Path]:
+        """{name: path} of artefacts a training stage is made from, named by their paths in the
+        run (e.g. "template/field.pt"): the `Trainer` records their digests."""
+        return {name: self.root / name for name in names}
+
     # ---- content --------------------------------------------------------------------------
     def require(self, what: str = "images") -> RunDir:
         """Fails with a clear message if this is not a run directory with `what` in it."""

@@ -75,7 +75,7 @@ from tqdm import tqdm
 
 from render.configs import option
 from render.errors import SineError
-from render.io import load_torch, read_json, save_torch, write_json
+from render.io import artefact_digest, load_torch, read_json, save_torch, write_json
 
 StepFn = Callable[[int], dict[str, torch.Tensor]]
 # The loop's own options, by the names a stage config gives them (see `loop_options`).
@@ -224,10 +224,15 @@ class Trainer:
         manual_backward: bool = False,
         advice: str = "lower learning rates",
         defaults: dict | None = None,
+        inputs: dict[str, str | os.PathLike] | None = None,
     ):
         self.directory = Path(directory)
         self.work_dir = self.directory.with_name(self.directory.name + ".partial")
-        self.name, self.config, self.runtime_keys = name, config, tuple(runtime_keys)
+        self.name, self.runtime_keys = name, tuple(runtime_keys)
+        # what the stage is made from (name -> file / folder): their digests are recorded with
+        # the options, so a finished run whose inputs changed since is trained again
+        self.inputs = {key: artefact_digest(path) for key, path in (inputs or {}).items()}
+        self.config = {**config, "inputs": self.inputs} if inputs is not None else config
         self.iterations, self.seed, self.log_every = iterations, seed, log_every
         self.checkpoint_every, self.checkpoint_seconds = checkpoint_every, checkpoint_seconds
         self.force, self.progress, self.manual_backward = force, progress, manual_backward
@@ -263,15 +268,29 @@ class Trainer:
         if not changes and done["step"] >= self.iterations:
             return {**read_json(metrics), "skipped": True}
         self._say(
-            f"options changed since the finished run in {self.directory} "
+            f"the finished run in {self.directory} is out of date "
             f"({'; '.join(changes)}): training again (the old results stay until it finishes)"
         )
         self._prepare_work_dir()
         return None
 
     def _changes(self, recorded: dict) -> list[str]:
-        """The options that differ from a recorded run's (see `defaults`)."""
-        return changed_options({**self.defaults, **recorded}, self.config, self.runtime_keys)
+        """The options that differ from a recorded run's (see `defaults`), then the inputs that
+        changed since it was made."""
+        recorded = dict(recorded)
+        made_from = recorded.pop("inputs", None)
+        options = {k: v for k, v in self.config.items() if k != "inputs"}
+        changes = changed_options({**self.defaults, **recorded}, options, self.runtime_keys)
+        if "inputs" in self.config:
+            if made_from is None:
+                changes.append("what it was made from was not recorded (an older version)")
+            else:
+                changes += [
+                    f"{key} is not the one it was made from"
+                    for key, digest in self.inputs.items()
+                    if made_from.get(key) != digest
+                ]
+        return changes
 
     def _prepare_work_dir(self) -> None:
         """Keeps work_dir when its checkpoint resumes with these options, else empties it."""

@@ -60,6 +60,22 @@ def file_sha256(path: str | os.PathLike) -> str:
     return h.hexdigest()
 
 
+def artefact_digest(path: str | os.PathLike) -> str | None:
+    """Hex SHA-256 of a file, or of a folder's files (their relative paths and contents, in
+    order); None when `path` does not exist."""
+    import hashlib
+
+    path = Path(path)
+    if path.is_file():
+        return file_sha256(path)
+    if not path.is_dir():
+        return None
+    h = hashlib.sha256()
+    for file in sorted(p for p in path.rglob("*") if p.is_file()):
+        h.update(f"{file.relative_to(path).as_posix()}\0{file_sha256(file)}\n".encode())
+    return h.hexdigest()
+
+
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)

@@ -39,6 +39,7 @@ from render.io import (
     read_image,
     read_label_map,
     read_mask,
+    save_torch,
     write_image,
     write_mask,
 )
@@ -526,6 +527,27 @@ def test_interrupted_texture_edit_resumes_bit_exactly(texture_run):
         torch.save({**original, "config": json.dumps(recorded)}, path)
         shutil.rmtree(run / "edits" / "resumed.partial", ignore_errors=True)
         assert run_texture_edit(*args, **kwargs, stop_at=1) == {"step": 1}, key
+
+
+def test_an_edit_of_a_template_fitted_again_is_learnt_again(texture_run, capsys):
+    run, _ = texture_run
+    args = (run, VIEW, run / "target.png", "full", TextureEditConfig(**TINY_TEXTURE_EDIT))
+    kwargs = {"region": run / "region.png", "progress": False}
+    assert run_texture_edit(*args, **kwargs)["skipped"]
+    path = run / "template" / "field.pt"
+    original = path.read_bytes()
+    refit = torch.load(path, weights_only=True)
+    name = next(iter(refit["field"]))
+    refit["field"][name] = refit["field"][name] + 1e-3
+    try:
+        save_torch(path, refit)
+        capsys.readouterr()
+        assert run_texture_edit(*args, **kwargs, stop_at=1) == {"step": 1}
+        assert "template/field.pt is not the one it was made from" in capsys.readouterr().out
+    finally:
+        path.write_bytes(original)
+        shutil.rmtree(run / "edits" / "full.partial", ignore_errors=True)
+    assert run_texture_edit(*args, **kwargs)["skipped"]
 
 
 def test_texture_baselines_and_scene(texture_run):

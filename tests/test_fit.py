@@ -128,6 +128,15 @@ def test_resume_gives_the_same_parameters(tiny_run, tmp_path, capsys):
         resumed.root, FitConfig(iterations=10, **{**TINY, "seed": 4}), progress=False
     )
     assert "seed: 3 -> 4" in capsys.readouterr().out and not other.get("skipped")
+    # what it is made from: the same options on a run whose recon changed a mask fit again
+    cfg4 = FitConfig(iterations=10, **{**TINY, "seed": 4})
+    assert fit_template(resumed.root, cfg4, progress=False)["skipped"]
+    mask = sorted(resumed.masks.glob("*.png"))[0]
+    changed = read_mask(mask)
+    changed[0, 0] = not changed[0, 0]
+    write_mask(mask, changed)
+    assert fit_template(resumed.root, cfg4, progress=False, stop_at=1) == {"step": 1}
+    assert "masks is not the one it was made from" in capsys.readouterr().out
 
 
 def test_options_are_checked_before_any_work(tiny_run, tmp_path, capsys):

@@ -150,6 +150,43 @@ def test_finished_run_is_skipped_and_changed_options_train_again(tmp_path, capsy
     ]
 
 
+def test_a_run_whose_inputs_changed_is_trained_again(tmp_path, capsys):
+    (tmp_path / "views").mkdir()
+    (tmp_path / "views" / "a.png").write_bytes(b"one")
+    (tmp_path / "field.pt").write_bytes(b"weights")
+    inputs = {"views": tmp_path / "views", "field.pt": tmp_path / "field.pt"}
+    t = Toy(tmp_path, inputs=inputs)
+    t.start()
+    t.trainer.run(t.step)
+    write_json(t.trainer.work_dir / "metrics.json", {"score": 1.0})
+    t.trainer.publish()
+    assert Toy(tmp_path, inputs=inputs).trainer.finished() is not None
+    # the same content written again (a stage re-run that changed nothing) is the same input
+    (tmp_path / "field.pt").write_bytes(b"weights")
+    assert Toy(tmp_path, inputs=inputs).trainer.finished() is not None
+    capsys.readouterr()
+    (tmp_path / "field.pt").write_bytes(b"weights fitted again")
+    assert Toy(tmp_path, inputs=inputs).trainer.finished() is None
+    said = capsys.readouterr().out
+    assert "field.pt is not the one it was made from" in said and "views" not in said
+    (tmp_path / "field.pt").write_bytes(b"weights")
+    (tmp_path / "views" / "b.png").write_bytes(b"two")  # a folder: a file more is a change
+    assert Toy(tmp_path, inputs=inputs).trainer.finished() is None
+    assert "views is not the one" in capsys.readouterr().out
+    # a run recorded without its inputs (an older version) is trained again too
+    (tmp_path / "views" / "b.png").unlink()
+    assert Toy(tmp_path, inputs=inputs).trainer.finished() is not None
+    assert Toy(tmp_path).trainer.finished() is not None  # a stage that names no inputs
+    plain = Toy(tmp_path, force=True)
+    plain.start()
+    plain.trainer.run(plain.step)
+    write_json(plain.trainer.work_dir / "metrics.json", {"score": 3.0})
+    plain.trainer.publish()
+    capsys.readouterr()
+    assert Toy(tmp_path, inputs=inputs).trainer.finished() is None
+    assert "was not recorded" in capsys.readouterr().out
+
+
 def test_interrupted_run_with_other_options_is_discarded(tmp_path, capsys):
     t = Toy(tmp_path)
     t.start()
