@@ -5,7 +5,9 @@ F'_dG; `strength` t scales the edit (0 = template, 1 = the edit). Naive: the fin
 with the template's proxy (it has no notion of a changed surface). Texture edits
 (`TextureEditScene`): the template image I_o and F_dT's modification image I_m blended by the 2D
 compositor (`edit.compositor`; without one, I_o + I_m); `strength` t blends the images,
-(1 - t) I_o + t I. Hybrid edits (`edit.hybrid_edit`): a texture edit whose template is the
+(1 - t) I_o + t I. With the template's `--supersample` s > 1 the compositor blends each of the
+s x s sub-pixel images (one ray per pixel, as the edit was trained on) and the pixel is their
+mean, not the composite of the box-filtered images. Hybrid edits (`edit.hybrid_edit`): a texture edit whose template is the
 geometric edit (`deformed_template`: the template behind F_dG as a plain field, sampled around
 F'_dG(proxy)); `strength` t scales the deformation and blends the images.
 """
@@ -184,6 +186,7 @@ class TextureEditScene(EditScene):
                 out["region"] = self.editing.gate(points)[:, None]
             return out
 
+        channels = ("rgb", "mod", "region") if self.compositor_region else ("rgb", "mod")
         out = render_image(
             camera,
             query,
@@ -192,13 +195,24 @@ class TextureEditScene(EditScene):
             chunk,
             self.device,
             self.supersample,
+            subpixels=channels,
         )
-        template, mod = (torch.from_numpy(out[k]).to(self.device) for k in ("rgb", "mod"))
-        region = None
-        if self.compositor_region:
-            region = torch.from_numpy(out["region"][..., 0]).to(self.device)
+        # the compositor was trained on images of one ray per pixel: it composites each of the
+        # s x s sub-pixel images, and the pixel's box filter averages the composites (the
+        # composite of the averaged images differs at edges: toycar -0.14 dB, bench/RESULTS.md)
+        sub = {k: torch.from_numpy(out[f"{k}_subpixels"]).to(self.device) for k in channels}
         with torch.no_grad():
-            edited = composite_hwc(self.compositor, template, mod, region)
+            composites = [
+                composite_hwc(
+                    self.compositor,
+                    sub["rgb"][i],  # I_o [H, W, 3]
+                    sub["mod"][i],  # I_m [H, W, 3]
+                    sub["region"][i, ..., 0] if "region" in sub else None,  # g [H, W]
+                )
+                for i in range(len(sub["rgb"]))
+            ]
+        edited = torch.stack(composites).mean(dim=0)
+        template = torch.from_numpy(out["rgb"]).to(self.device)
         rgb = (1.0 - self.strength) * template + self.strength * edited
         return {"rgb": rgb.cpu().numpy(), **{k: out[k] for k in ("opacity", "depth", "z")}}
 

@@ -143,13 +143,17 @@ def render_image(
     chunk: int = 16384,
     device: torch.device | None = None,
     supersample: int = 1,
+    subpixels: tuple[str, ...] = (),
 ) -> dict[str, np.ndarray]:
     """One camera -> {"rgb" [H, W, 3], "opacity" [H, W], "depth" [H, W] (ray distance),
     "z" [H, W] (camera depth), other channels [H, W, C]} as float32 numpy, without gradients.
 
     `supersample` s > 1: every channel is the mean of s x s rays spread evenly over each pixel
     (a box filter, as a camera pixel integrates light; s^2 times the rays); the depths are
-    weighted by the rays' opacities (the depth of what the pixel sees)."""
+    weighted by the rays' opacities (the depth of what the pixel sees). The channels named in
+    `subpixels` also come unfiltered, as "NAME_subpixels" [s * s, H, W, C]: the s x s images of
+    one ray per pixel, each at its own offset within the pixel (for a non-linear step, such as
+    a texture edit's compositor, that must act on each before the box filter)."""
     device = device or torch.device("cpu")
     s = int(supersample)
     if s < 1:
@@ -168,7 +172,10 @@ def render_image(
     for k, v in res.items():
         if k in ("samples", "hit"):
             continue
-        v = v.detach().float().cpu().numpy().reshape(h, s, w, s, -1).mean(axis=(1, 3))
+        v = v.detach().float().cpu().numpy().reshape(h, s, w, s, -1)
+        if k in subpixels:  # [s * s, H, W, C]: image (i, j) holds ray (i, j) of every pixel
+            out[f"{k}_subpixels"] = v.transpose(1, 3, 0, 2, 4).reshape(s * s, h, w, -1)
+        v = v.mean(axis=(1, 3))
         out[k] = v if res[k].ndim == 2 else v[..., 0]
     for k in depths:
         out[k] = np.where(out["opacity"] > 0, out[k] / np.maximum(out["opacity"], 1e-6), 0.0)

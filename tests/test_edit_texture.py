@@ -583,6 +583,30 @@ def test_texture_baselines_and_scene(texture_run):
     scene = load_scene(run, edit="full", strength=0.0, device="cpu")
     template = load_scene(run, device="cpu").render_view(camera)["rgb"]
     assert np.allclose(scene.render_view(camera)["rgb"], template, atol=1e-5)
+    # the compositor acts on each sub-pixel image of one ray per pixel (what it was trained
+    # on), the pixel's box filter after it: not the composite of the box-filtered images
+    scene = load_scene(run, edit="full", device="cpu")
+    assert scene.supersample == 2 and scene.compositor_region
+    field_query = edited_query(scene.template.field, scene.editing, 1.0)
+
+    def query(points, dirs):
+        return {**field_query(points, dirs), "region": scene.editing.gate(points)[:, None]}
+
+    channels = ("rgb", "mod", "region")
+    out = render_image(
+        camera, query, scene.sampler(), scene.template.background, supersample=2, subpixels=channels
+    )
+
+    def composite(images):  # I_o, I_m [H, W, 3], g [H, W, 1] -> I [H, W, 3]
+        rgb, mod, region = (torch.from_numpy(np.ascontiguousarray(x)) for x in images)
+        with torch.no_grad():
+            return composite_hwc(scene.compositor, rgb, mod, region[..., 0]).numpy()
+
+    by_subpixel = [composite([out[f"{k}_subpixels"][i] for k in channels]) for i in range(4)]
+    rendered = scene.render_view(camera)["rgb"]
+    np.testing.assert_allclose(rendered, np.mean(by_subpixel, axis=0), atol=1e-5)
+    of_means = composite([out[k] for k in channels])
+    assert np.abs(rendered - of_means).max() > 1e-3  # at the part's edges
     # exported colours come from the compositor's images
     vertices, triangles, colours = load_scene(run, edit="full", device="cpu").colored_mesh()
     assert colours.shape == vertices.shape and colours.min() >= 0 and colours.max() <= 1

@@ -234,3 +234,13 @@ def test_render_image_supersample_integrates_each_pixel():
     edge = (five["opacity"] > 0.05) & (five["opacity"] < 0.95)
     assert np.all((five["z"][edge] > 2.5 - 1e-3) & (five["z"][edge] < 3.0 + 1e-3))
     assert np.all(five["z"][five["opacity"] == 0] == 0)
+    # the sub-pixel images: image (i, j) is ray (i, j) of every pixel, i.e. every 5th pixel of
+    # a 5x larger camera's one-ray render, starting at row i, column j; their mean is the pixel
+    subs = render_image(
+        cam, _solid_sphere_field, sampler, torch.ones(3), supersample=5, subpixels=("rgb",)
+    )
+    assert subs["rgb_subpixels"].shape == (25, 12, 16, 3) and "opacity_subpixels" not in subs
+    np.testing.assert_allclose(subs["rgb_subpixels"].mean(axis=0), five["rgb"], atol=1e-6)
+    big = render_image(cam.resized(80, 60), _solid_sphere_field, sampler, torch.ones(3))
+    for i, j in ((0, 0), (1, 3), (4, 2)):
+        np.testing.assert_allclose(subs["rgb_subpixels"][5 * i + j], big["rgb"][i::5, j::5])
