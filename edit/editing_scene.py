@@ -7,9 +7,10 @@ with the template's proxy (it has no notion of a changed surface). Texture edits
 compositor (`edit.compositor`; without one, I_o + I_m); `strength` t blends the images,
 (1 - t) I_o + t I. With the template's `--supersample` s > 1 the compositor blends each of the
 s x s sub-pixel images (one ray per pixel, as the edit was trained on) and the pixel is their
-mean, not the composite of the box-filtered images. Hybrid edits (`edit.hybrid_edit`): a texture edit whose template is the
-geometric edit (`deformed_template`: the template behind F_dG as a plain field, sampled around
-F'_dG(proxy)); `strength` t scales the deformation and blends the images.
+mean, not the composite of the box-filtered images. Hybrid edits (`edit.hybrid_edit`): a
+texture edit whose template is the geometric edit (`deformed_template`: the template behind
+F_dG as a plain field, sampled around F'_dG(proxy)); `strength` t scales the deformation and
+blends the images.
 """
 
 from __future__ import annotations

@@ -53,7 +53,9 @@ outputs there. So an interrupted run resumes from the partial checkpoint, and `-
 changed options replace the old results only when the new run has finished. A finished run whose
 recorded options differ from the given ones (runtime keys such as device and threads aside) is
 trained again, and the changed options are named; an interrupted run with other options is
-discarded the same way.
+discarded the same way. A stage also names what it is made from (`inputs`: files or folders of
+the run, e.g. the template's field.pt for an edit): their digests are recorded with the options,
+and a run whose inputs changed since (or were not recorded) is trained again as well.
 """
 
 from __future__ import annotations
