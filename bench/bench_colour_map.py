@@ -53,18 +53,12 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
     args = ap.parse_args()
 
-    import torch
-    from bench_edit_texture import pick_edit_view
+    from bench_edit_texture import open_object
 
     from edit.scene import load_scene
-    from recon.rundir import RunDir
     from render.io import read_image, read_json, read_label_map, write_json
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    run, syn = RunDir(args.object_dir / "run"), args.object_dir / "synth"
-    frames = run.load_cameras().frames
-    k = pick_edit_view(run, syn)
+    run, syn, frames, k = open_object(args.object_dir, args.threads)
     part = read_json(syn / "edits" / "texture" / "edit.json")["part"]
     scene = load_scene(run.root)
 

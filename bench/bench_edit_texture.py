@@ -115,6 +115,19 @@ def pick_edit_view(run, syn: Path) -> int:
     return max(counts)[1]
 
 
+def open_object(object_dir: Path, threads: int = 0):
+    """(run, synth folder, cameras, edit view K) of a finished DIR/OBJECT folder of this bench,
+    for the diagnostics that read it (`threads`: torch threads, 0 leaves the default)."""
+    import torch
+
+    from recon.rundir import RunDir
+
+    if threads:
+        torch.set_num_threads(threads)
+    run, syn = RunDir(object_dir / "run"), object_dir / "synth"
+    return run, syn, run.load_cameras().frames, pick_edit_view(run, syn)
+
+
 def painted_region(syn: Path, cam, out: Path) -> Path:
     """The edited part's GT labels in the view, as a white-on-black PNG (the user's painting)."""
     from render.io import read_json, read_label_map, write_mask

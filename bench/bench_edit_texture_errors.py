@@ -47,18 +47,12 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
     args = ap.parse_args()
 
-    import torch
-    from bench_edit_texture import changed_pixels, pick_edit_view
+    from bench_edit_texture import changed_pixels, open_object
 
     from edit.scene import load_scene
-    from recon.rundir import RunDir
     from render.io import read_image, read_mask, write_json
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    run, syn = RunDir(args.object_dir / "run"), args.object_dir / "synth"
-    frames = run.load_cameras().frames
-    k = pick_edit_view(run, syn)
+    run, syn, frames, k = open_object(args.object_dir, args.threads)
     views = [v for v in range(0, len(frames), 4) if v != k]
     scenes = {"template": load_scene(run.root)}
     scenes.update({name: load_scene(run.root, edit=name) for name in args.edits})
