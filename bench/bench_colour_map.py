@@ -40,9 +40,11 @@ def fit_colour_map(source: np.ndarray, target: np.ndarray, ridge: float) -> np.n
 
 
 def mapped_psnr(colour_map: np.ndarray, source: np.ndarray, target: np.ndarray) -> float:
+    """PSNR of the colours `source` [N, 3] through the map against `target` [N, 3]."""
+    from bench_edit_texture import psnr
+
     a, b = colour_map[:9].reshape(3, 3), colour_map[9:]
-    pred = np.clip(source + source @ a.T + b, 0.0, 1.0)
-    return float(-10.0 * np.log10(((pred - target) ** 2).mean()))
+    return psnr(np.clip(source + source @ a.T + b, 0.0, 1.0), target)
 
 
 def main() -> int:
@@ -53,25 +55,23 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
     args = ap.parse_args()
 
-    from bench_edit_texture import open_object
+    from bench_edit_texture import heldout_views, open_object, part_label
 
     from edit.scene import load_scene
-    from render.io import read_image, read_json, read_label_map, write_json
+    from render.io import read_image, write_json
 
     run, syn, frames, k = open_object(args.object_dir, args.threads)
-    part = read_json(syn / "edits" / "texture" / "edit.json")["part"]
     scene = load_scene(run.root)
 
     def part_colours(cam) -> tuple[np.ndarray, np.ndarray]:
         """The template's and the GT edit's colours [N, 3] of the part's pixels in a view."""
         out = scene.render_view(cam)
-        label = read_label_map(syn / "labels" / Path(cam.name).with_suffix(".png").name)
-        pixels = (label == part) & (out["opacity"] > 0.5)
+        pixels = part_label(syn, cam.name) & (out["opacity"] > 0.5)
         edited = read_image(syn / "edits" / "texture" / "images" / cam.name)
         return np.clip(out["rgb"], 0, 1)[pixels], edited[pixels]
 
     source_k, target_k = part_colours(frames[k])
-    held = [part_colours(frames[v]) for v in range(0, len(frames), 4) if v != k]
+    held = [part_colours(frames[v]) for v in heldout_views(len(frames), k)]
     source, target = np.concatenate([h[0] for h in held]), np.concatenate([h[1] for h in held])
     spread = np.linalg.eigvalsh(np.cov(source_k.T))
     rows = {"identity": mapped_psnr(np.zeros(12), source, target)}

@@ -128,13 +128,24 @@ def open_object(object_dir: Path, threads: int = 0):
     return run, syn, run.load_cameras().frames, pick_edit_view(run, syn)
 
 
-def painted_region(syn: Path, cam, out: Path) -> Path:
-    """The edited part's GT labels in the view, as a white-on-black PNG (the user's painting)."""
-    from render.io import read_json, read_label_map, write_mask
+def heldout_views(n_views: int, k: int) -> list[int]:
+    """The views scored: every 4th view around the ring, the edited view K excluded."""
+    return [v for v in range(0, n_views, 4) if v != k]
+
+
+def part_label(syn: Path, name: str) -> np.ndarray:
+    """[H, W] bool: the GT edit's part in the view of image `name` (its GT labels)."""
+    from render.io import read_json, read_label_map
 
     part = read_json(syn / "edits" / "texture" / "edit.json")["part"]
-    region = read_label_map(syn / "labels" / Path(cam.name).with_suffix(".png").name) == part
-    write_mask(out, region)
+    return read_label_map(syn / "labels" / Path(name).with_suffix(".png").name) == part
+
+
+def painted_region(syn: Path, cam, out: Path) -> Path:
+    """The edited part's GT labels in the view, as a white-on-black PNG (the user's painting)."""
+    from render.io import write_mask
+
+    write_mask(out, part_label(syn, cam.name))
     return out
 
 
@@ -328,17 +339,16 @@ def reference_color_distances(syn: Path, previews: list[Path], photo: Path) -> d
 
     from edit.texture_edit import read_reference
     from edit.texture_loss import sliced_wasserstein
-    from render.io import read_image, read_json, read_label_map
+    from render.io import read_image
 
     reference = torch.from_numpy(read_reference(photo, (1.0, 1.0, 1.0)).colors)
-    part = read_json(syn / "edits" / "texture" / "edit.json")["part"]
     gen = torch.Generator().manual_seed(0)
     directions = torch.nn.functional.normalize(torch.randn(64, 3, generator=gen), dim=1)
     before, after = [], []
     for path in previews:
         pair = read_image(path)
         w = pair.shape[1] // 2
-        inside = read_label_map(syn / "labels" / path.name) == part
+        inside = part_label(syn, path.name)
         for half, out in ((pair[:, :w], before), (pair[:, w:], after)):
             colours = torch.from_numpy(np.ascontiguousarray(half[inside]))
             out.append(1000 * float(sliced_wasserstein(colours, reference, directions)))
@@ -495,8 +505,7 @@ def main() -> int:
             flush=True,
         )
         k = pick_edit_view(run, syn)
-        n = len(run.load_cameras().frames)
-        views = [v for v in range(0, n, 4) if v != k]
+        views = heldout_views(len(run.load_cameras().frames), k)
         template = load_scene(run.root)
         cam = run.load_cameras().frames[k]
         target = syn / "edits" / "texture" / "images" / cam.name

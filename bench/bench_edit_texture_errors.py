@@ -47,13 +47,13 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
     args = ap.parse_args()
 
-    from bench_edit_texture import changed_pixels, open_object
+    from bench_edit_texture import changed_pixels, heldout_views, open_object
 
     from edit.scene import load_scene
     from render.io import read_image, read_mask, write_json
 
     run, syn, frames, k = open_object(args.object_dir, args.threads)
-    views = [v for v in range(0, len(frames), 4) if v != k]
+    views = heldout_views(len(frames), k)
     scenes = {"template": load_scene(run.root)}
     scenes.update({name: load_scene(run.root, edit=name) for name in args.edits})
     parts = ("changed_edge", "changed_interior", "unchanged")
