@@ -27,21 +27,41 @@ class EditGate(nn.Module):
 
     @torch.no_grad()
     def set_from_points(
-        self, points: np.ndarray, inner: float, outer: float, resolution: int = 64
+        self,
+        points: np.ndarray,
+        inner: float,
+        outer: float,
+        resolution: int = 64,
+        others: np.ndarray | None = None,
     ) -> None:
         """w = 1 within `inner` (run units) of any of `points` [M, 3], 0 beyond `outer`, linear
-        in between (the distance measured on a voxel grid of `resolution`^3)."""
+        in between (the distance measured on a voxel grid of `resolution`^3). `others` [K, 3]:
+        surface points that are not the part's. A voxel then is the part's where it holds more
+        of `points` than of `others`, and w also falls to 0 within a voxel where the nearest
+        voxel of `others` is nearer than the part's: the part's own points outvote the few
+        that one view's mask wrongly calls the part, and the gate stops at the neighbours'
+        surface instead of spreading `outer` over it."""
         voxel = 2 * self.bound / resolution
-        occupied = np.zeros((resolution,) * 3, bool)
-        ijk = np.floor((np.asarray(points) + self.bound) / voxel).astype(int)
-        ijk = np.clip(ijk, 0, resolution - 1)
-        occupied[ijk[:, 2], ijk[:, 1], ijk[:, 0]] = True  # [z, y, x]
-        dist = ndimage.distance_transform_edt(~occupied) * voxel if occupied.any() else None
-        if dist is None:
-            w = np.ones_like(occupied, np.float32)
-        else:
-            w = np.clip((outer - dist) / max(outer - inner, 1e-6), 0.0, 1.0).astype(np.float32)
-        self.grid = torch.from_numpy(w)[None, None].to(self.grid.device)
+
+        def counts(pts: np.ndarray) -> np.ndarray:  # [z, y, x] points per voxel
+            ijk = np.floor((np.asarray(pts).reshape(-1, 3) + self.bound) / voxel).astype(int)
+            ijk = np.clip(ijk, 0, resolution - 1)
+            flat = np.ravel_multi_index((ijk[:, 2], ijk[:, 1], ijk[:, 0]), (resolution,) * 3)
+            return np.bincount(flat, minlength=resolution**3).reshape((resolution,) * 3)
+
+        inside = counts(points)
+        outside = counts(others) if others is not None else np.zeros_like(inside)
+        occupied = inside > outside
+        if not occupied.any():  # no part: no gating
+            self.grid = torch.ones(1, 1, *occupied.shape, device=self.grid.device)
+            return
+        dist = ndimage.distance_transform_edt(~occupied) * voxel
+        w = np.clip((outer - dist) / max(outer - inner, 1e-6), 0.0, 1.0)
+        other = (outside > 0) & ~occupied
+        if other.any():  # nearer the neighbours' surface than the part's: 0
+            to_other = ndimage.distance_transform_edt(~other) * voxel
+            w *= np.clip((to_other - dist) / voxel + 0.5, 0.0, 1.0)
+        self.grid = torch.from_numpy(w.astype(np.float32))[None, None].to(self.grid.device)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         g = (x / self.bound).clamp(-1, 1).view(1, -1, 1, 1, 3)  # grid_sample order: x, y, z

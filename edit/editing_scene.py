@@ -176,6 +176,7 @@ class TextureEditScene(EditScene):
 
     compositor: Compositor | None = None
     compositor_region: bool = False  # the compositor's g is the edit's gate rendered
+    part_colour: bool = False  # the affine head transforms the part's share P (compositor doc)
     color_views: int = 8  # views rendered to colour exported vertices
 
     def render_view(self, camera, chunk: int = 16384) -> dict[str, np.ndarray]:
@@ -185,9 +186,12 @@ class TextureEditScene(EditScene):
             out = edited_colours(points, dirs)
             if self.compositor_region:  # composited like the colours: g of each pixel
                 out["region"] = self.editing.gate(points)[:, None]
+                if self.part_colour:  # and P, the part's share of I_o
+                    out["part"] = out["region"] * out["rgb"]
             return out
 
         channels = ("rgb", "mod", "region") if self.compositor_region else ("rgb", "mod")
+        channels += ("part",) if self.compositor_region and self.part_colour else ()
         out = render_image(
             camera,
             query,
@@ -210,6 +214,7 @@ class TextureEditScene(EditScene):
                     sub["rgb"][i],  # I_o [H, W, 3]
                     sub["mod"][i],  # I_m [H, W, 3]
                     sub["region"][i, ..., 0] if "region" in sub else None,  # g [H, W]
+                    sub["part"][i] if "part" in sub else None,  # P [H, W, 3]
                 )
                 for i in range(len(sub["rgb"]))
             ]
@@ -301,5 +306,6 @@ def scene_from_folder(run: RunDir, edit_dir, strength: float, device: torch.devi
             **common,
             compositor=compositor,
             compositor_region=bool(texture.get("compositor_region", False)),
+            part_colour=bool(texture.get("part_colour", False)),
         )
     return EditScene(**common)

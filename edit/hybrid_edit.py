@@ -40,7 +40,7 @@ Outputs in RUN/edits/NAME/ (load_scene / `sine render` / `sine export` render bo
     edit.json      mode, view, inputs and their SHA-256, every option ("geometry.*", "texture.*")
     checkpoint.pt  resumable training state
     edit_field.pt  {"method": "hybrid", "band_width", "geometry": {"editing"},
-                   "texture": {"editing", "compositor", "compositor_region"}}
+                   "texture": {"editing", "compositor", "compositor_region", "part_colour"}}
     metrics.json, log.json, edited_view.png (template | edit | target(s)), previews/
 """
 
@@ -315,6 +315,7 @@ def _edit(
                 "editing": tex_editing.state_dict(),
                 "compositor": None if compositor is None else compositor.state_dict(),
                 "compositor_region": bool(tcfg.gate),  # g = the gate rendered
+                "part_colour": bool(tcfg.gate and tcfg.part_colour),
             },
         },
     )

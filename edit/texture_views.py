@@ -45,6 +45,8 @@ class ViewSamples:
     goal: torch.Tensor | None = None  # [P, 3] target colours (the edited view)
     region: torch.Tensor | None = None  # [P] the edit's 3D gate rendered (compositor's g)
     features: torch.Tensor | None = None  # [S, F] the template's geometry feature per sample
+    colours: torch.Tensor | None = None  # [S, 3] the template's colour c_s per sample
+    part_rgb: torch.Tensor | None = None  # [P, 3] the gated part's share of I_o (render_gate)
 
     def modification(self, texture, s0: int = 0, s1: int | None = None) -> torch.Tensor:
         """F_dT at samples s0..s1-1 [s, 3] (given the samples' template feature when F_dT
@@ -90,6 +92,8 @@ class ViewSamples:
             goal=None if self.goal is None else self.goal[pixels],
             region=None if self.region is None else self.region[pixels],
             features=None if self.features is None else self.features[ids],
+            colours=None if self.colours is None else self.colours[ids],
+            part_rgb=None if self.part_rgb is None else self.part_rgb[pixels],
         )
 
     def crop(self, y0: int, y1: int, x0: int, x1: int) -> ViewSamples:
@@ -110,8 +114,8 @@ def sample_view(
     features: bool = False,
 ) -> ViewSamples:
     """Renders `camera` through the frozen `template` (as `render.renderer.render_rays`, without
-    perturbation) and keeps its samples of weight > min_weight (0 keeps every sample);
-    features: also keeps each sample's geometry feature (the template's "geo_feat")."""
+    perturbation) and keeps its samples of weight > min_weight (0 keeps every sample) with
+    their colour c_s; features: also keeps each sample's geometry feature (the template's "geo_feat")."""
     device = device or torch.device("cpu")
     o_all, d_all = (torch.from_numpy(a).to(device) for a in camera.rays())
     n = len(o_all)
@@ -119,7 +123,7 @@ def sample_view(
     opacity = torch.zeros(n, device=device)
     depth = torch.zeros(n, device=device)
     counts = torch.zeros(n, dtype=torch.int64, device=device)
-    points, weights, feats = [], [], []
+    points, weights, feats, cols = [], [], [], []
     for start in range(0, n, chunk):
         o, d = o_all[start : start + chunk], d_all[start : start + chunk]
         hits = sampler.cast(o, d)
@@ -146,6 +150,7 @@ def sample_view(
         counts[gidx] = keep.sum(dim=1)
         points.append(pts[keep])
         weights.append(w[keep])
+        cols.append(res["rgb"].view(*t.shape, 3)[keep])
         if features:
             feats.append(res["geo_feat"].view(*t.shape, -1)[keep])
     offsets = torch.zeros(n + 1, dtype=torch.int64, device=device)
@@ -165,6 +170,7 @@ def sample_view(
         pixel=torch.repeat_interleave(torch.arange(n, device=device), counts),
         offsets=offsets,
         features=kept_features,
+        colours=torch.cat(cols) if cols else empty,
     )
 
 
@@ -219,12 +225,18 @@ def render_modification(
 
 
 @torch.no_grad()
-def render_gate(view: ViewSamples, gate) -> torch.Tensor:
-    """The 3D gate w(x) rendered with the view's kept samples: [P] = sum_s w_s gate(x_s)."""
-    out = view.opacity.new_zeros(view.n_pixels)
+def render_gate(view: ViewSamples, gate) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The 3D gate g(x) rendered with the view's kept samples: [P] = sum_s w_s g(x_s), and the
+    part's share of the template colour, [P, 3] = sum_s w_s g(x_s) c_s (None when the view
+    kept no colours)."""
+    region = view.opacity.new_zeros(view.n_pixels)
+    part = None if view.colours is None else view.template_rgb.new_zeros(view.n_pixels, 3)
     if view.points.shape[0] == 0:
-        return out
-    return out.index_add(0, view.pixel, view.weights * gate(view.points))
+        return region, part
+    g = view.weights * gate(view.points)  # [S]
+    if part is not None:
+        part = part.index_add(0, view.pixel, g[:, None] * view.colours)
+    return region.index_add(0, view.pixel, g), part
 
 
 def box_pixels(width: int, y0: int, y1: int, x0: int, x1: int, device=None) -> torch.Tensor:

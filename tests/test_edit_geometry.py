@@ -472,6 +472,27 @@ def test_edit_gate_values_and_reload():
     assert torch.equal(reloaded.gate(x), w) and reloaded.texture.gate is reloaded.gate
 
 
+def test_edit_gate_vote_outvotes_stray_points_and_stops_at_the_neighbours_surface():
+    """A part's surface along x in [0, 0.28], its neighbour's along [0.32, 0.6], and two stray
+    part points at x = 0.5 (one view's mask wrongly reaching over the neighbour): without the
+    others' votes the gate opens around the strays; with them it is 0 there and stays 1 on the
+    part and just off its surface."""
+    from edit.edit_gate import EditGate
+
+    line = np.zeros((50, 3))
+    part, neighbour = line.copy(), line.copy()
+    part[:, 0], neighbour[:, 0] = np.linspace(0.0, 0.28, 50), np.linspace(0.32, 0.6, 50)
+    stray = np.array([[0.5, 0.0, 0.0], [0.505, 0.0, 0.0]])
+    x = torch.tensor([[0.1, 0.0, 0.0], [0.1, 0.04, 0.0], [0.47, 0.0, 0.0], [0.5, 0.0, 0.0]])
+    union, vote = EditGate(), EditGate()
+    union.set_from_points(np.concatenate([part, stray]), inner=0.05, outer=0.1, resolution=64)
+    assert (union(x) > 0.5).all()
+    vote.set_from_points(np.concatenate([part, stray]), 0.05, 0.1, 64, others=neighbour)
+    w = vote(x)
+    assert w[0] == 1.0 and w[1] == 1.0
+    assert w[2] == 0.0 and w[3] == 0.0
+
+
 def test_an_identity_edit_renders_the_template_exactly_in_the_fit_band(tiny_fitted_run):
     """Sampled in the template fit's band (the default: band_width None), an editing field
     that moves nothing renders the template's pixels; a wider band samples other points, so

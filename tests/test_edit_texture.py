@@ -27,6 +27,7 @@ from edit.texture_field import TextureField, cosine_window
 from edit.texture_views import (
     LiftedRegion,
     ViewSamples,
+    render_gate,
     render_modification,
     sample_view,
 )
@@ -150,6 +151,31 @@ def test_affine_head_starts_at_the_plain_sum_and_applies_one_colour_transform():
         Compositor(head="quadratic")
 
 
+def test_affine_head_transforms_only_the_parts_share_of_a_rim_pixel():
+    """With the part's share P of I_o given, A acts on P + I_m and b is weighed by g: a pixel
+    half part (colour p) and half background (colour q) changes by (A p + b) / 2; inside the
+    part (g = 1, P = I_o) it is the transform of the whole pixel, as without P."""
+    comp = Compositor(head="affine")
+    a = torch.tensor([[0.0, 0.25, 0.0], [-0.25, 0.0, 0.0], [0.0, 0.0, -0.25]])
+    b = torch.tensor([0.05, 0.0, -0.05])  # p -> (0.95, 0.2, 0.1): no clamping
+    with torch.no_grad():
+        comp.head.bias[:9] = a.flatten()
+        comp.head.bias[9:] = b
+    p, q = torch.tensor([0.8, 0.4, 0.2]), torch.tensor([0.1, 0.3, 0.6])
+    template = torch.stack([(p + q) / 2, p], dim=1)[None, :, None, :]  # [1, 3, 1, 2]
+    part = torch.stack([p / 2, p], dim=1)[None, :, None, :]
+    region = torch.tensor([0.5, 1.0]).reshape(1, 1, 1, 2)
+    mod = torch.zeros_like(template)
+    out = comp(template, mod, region, part)[0, :, 0]  # [3, 2]
+    assert torch.allclose(out[:, 0], (p + q) / 2 + (a @ p + b) / 2, atol=1e-6)
+    assert torch.allclose(out[:, 1], p + a @ p + b, atol=1e-6)
+    assert torch.allclose(out[:, 1], comp(template, mod, region)[0, :, 0, 1], atol=1e-6)
+    # the whole pixel transformed instead: the background's share changes too
+    whole = comp(template, mod, region)[0, :, 0, 0]
+    assert torch.allclose(whole, (p + q) / 2 + (a @ ((p + q) / 2) + b) / 2, atol=1e-6)
+    assert (whole - out[:, 0]).abs().max() > 0.03
+
+
 def test_affine_head_shared_transform_has_its_own_learning_rate():
     from edit.texture_edit import texture_parts
 
@@ -222,21 +248,32 @@ def _grads(*modules) -> list[torch.Tensor]:
 
 
 @pytest.mark.parametrize(
-    "cond_dim, plain, head",
-    [(0, False, "residual"), (4, False, "residual"), (0, True, "residual"), (4, False, "affine")],
+    "cond_dim, plain, head, part",
+    [
+        (0, False, "residual", False),
+        (4, False, "residual", False),
+        (0, True, "residual", False),
+        (4, False, "affine", False),
+        (4, False, "affine", True),
+    ],
 )
-def test_deferred_gradients_equal_direct_backpropagation(cond_dim, plain, head):
+def test_deferred_gradients_equal_direct_backpropagation(cond_dim, plain, head, part):
     """Two images through F_dT (position only, or reading per-sample features) and the
     compositor, an image-space loss mixing all pixels (plain: also a loss on I_o + I_m before
     the compositor, `--w-plain`): the parameter gradients of deferred back-propagation in tiles
     of 4 px (halo 8, F_dT on 5 samples at a time) equal those of direct back-propagation through
-    the whole images at once (either compositor head)."""
+    the whole images at once (either compositor head; the affine one also with the gate g and
+    the part's share P of I_o)."""
     torch.manual_seed(0)
     texture, comp = TextureField(SMALL_GRID, cond_dim=cond_dim), Compositor(head=head)
     with torch.no_grad():  # leave the zero start so every parameter gets a gradient
         texture.mlp[-1].weight.normal_(0, 0.5)
         comp.head.weight.normal_(0, 0.5)
     views = [_random_view(14, 11, 1, cond_dim), _random_view(9, 16, 2, cond_dim)]
+    if part:
+        for view in views:
+            view.region = torch.rand(view.n_pixels)
+            view.part_rgb = view.template_rgb * view.region[:, None]
     goal = [torch.rand(*v.size, 3) for v in views]
 
     def loss_fn(leaves):
@@ -254,7 +291,9 @@ def test_deferred_gradients_equal_direct_backpropagation(cond_dim, plain, head):
         h, w = view.size
         mod = render_modification(view, texture, None).reshape(h, w, 3)  # one plain graph
         template_rgb = view.template_rgb.reshape(h, w, 3)
-        images.append({"rgb": composite_hwc(comp, template_rgb, mod)})
+        region = None if view.region is None else view.region.reshape(h, w)
+        part_rgb = None if view.part_rgb is None else view.part_rgb.reshape(h, w, 3)
+        images.append({"rgb": composite_hwc(comp, template_rgb, mod, region, part_rgb)})
         images[-1]["plain"] = (template_rgb + mod).clamp(0, 1)
     loss_direct, _ = loss_fn(images)
     loss_direct.backward()
@@ -349,6 +388,12 @@ def test_sample_view_matches_the_renderer(tiny_fitted_run, features):
     assert torch.allclose(
         view.opacity, torch.from_numpy(reference["opacity"]).reshape(-1), atol=1e-5
     )
+    # the gate rendered: with g = 1 / 2 everywhere, half the opacity and half the template's
+    # colour without the background (the part's share P of I_o)
+    region, part = render_gate(view, lambda points: torch.full((len(points),), 0.5))
+    assert torch.allclose(region, view.opacity / 2, atol=1e-5)
+    on_black = render_image(camera, template, sampler, torch.zeros(3))["rgb"].reshape(-1, 3)
+    assert on_black.max() > 0.3 and torch.allclose(part, torch.from_numpy(on_black) / 2, atol=1e-5)
     editing = EditingField(template.grid.cfg, texture_cond=template.cfg.geo_feat_dim * features)
     with torch.no_grad():
         editing.texture.mlp[-1].weight.normal_(0, 0.5)
@@ -586,21 +631,23 @@ def test_texture_baselines_and_scene(texture_run):
     # the compositor acts on each sub-pixel image of one ray per pixel (what it was trained
     # on), the pixel's box filter after it: not the composite of the box-filtered images
     scene = load_scene(run, edit="full", device="cpu")
-    assert scene.supersample == 2 and scene.compositor_region
+    assert scene.supersample == 2 and scene.compositor_region and scene.part_colour
     field_query = edited_query(scene.template.field, scene.editing, 1.0)
 
     def query(points, dirs):
-        return {**field_query(points, dirs), "region": scene.editing.gate(points)[:, None]}
+        out = field_query(points, dirs)
+        region = scene.editing.gate(points)[:, None]
+        return {**out, "region": region, "part": region * out["rgb"]}
 
-    channels = ("rgb", "mod", "region")
+    channels = ("rgb", "mod", "region", "part")
     out = render_image(
         camera, query, scene.sampler(), scene.template.background, supersample=2, subpixels=channels
     )
 
-    def composite(images):  # I_o, I_m [H, W, 3], g [H, W, 1] -> I [H, W, 3]
-        rgb, mod, region = (torch.from_numpy(np.ascontiguousarray(x)) for x in images)
+    def composite(images):  # I_o, I_m [H, W, 3], g [H, W, 1], P [H, W, 3] -> I [H, W, 3]
+        rgb, mod, region, part = (torch.from_numpy(np.ascontiguousarray(x)) for x in images)
         with torch.no_grad():
-            return composite_hwc(scene.compositor, rgb, mod, region[..., 0]).numpy()
+            return composite_hwc(scene.compositor, rgb, mod, region[..., 0], part).numpy()
 
     by_subpixel = [composite([out[f"{k}_subpixels"][i] for k in channels]) for i in range(4)]
     rendered = scene.render_view(camera)["rgb"]
