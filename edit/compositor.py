@@ -147,8 +147,7 @@ def composite_hwc(
     compositor: Compositor | None, template, modification, region=None, part=None
 ) -> torch.Tensor:
     """Images [H, W, 3] (torch; `region` [H, W], `part` [H, W, 3] or None) -> the edited image
-    [H, W, 3]; no
-    compositor: the plain sum, clamped (the `--no-compositor` rendering,
+    [H, W, 3]; no compositor: the plain sum, clamped (the `--no-compositor` rendering,
     `edit.editing_field.combine`)."""
     if compositor is None:
         return (template + modification).clamp(0.0, 1.0)

@@ -60,9 +60,9 @@ graph, F_dT queried in chunks of samples):
   (`edit.edit_gate.EditGate`) that is 1 near the samples of view K's region and of every
   training camera's editable pixels and 0 farther than `gate_outer`: there the edit is exactly
   the template; rendered into each view, the same gate is the compositor's g (its output acts
-  on the part's pixels only, on every side of the part). `gate_vote`: the other pixels' samples
-  vote against, so one view's stray editable pixels do not open the gate, and it ends where
-  what may not change is nearer than the part.
+  on the part's pixels only, on every side of the part). `gate_vote` (semantic masks): the other
+  pixels' samples vote against, so one view's stray editable pixels do not open the gate, and
+  it ends where what may not change is nearer than the part.
 
 `--compositor-head affine` (beyond the paper, the default): the compositor's UNet predicts a
 colour transform per pixel (A I + b in RGB) instead of a residual (`residual`, the paper's);
@@ -226,11 +226,14 @@ class TextureEditConfig(LoopOptions):
     )
     gate_resolution: int = option(128, "gate: voxels per side over [-1, 1]^3", low=2)
     gate_vote: bool = option(
-        False,
-        "gate: a voxel is the part's where more of the views' editable pixels' samples fall in "
+        True,
+        "gate, with the semantic masks: a voxel is the part's where more of the views' editable pixels' samples fall in "
         "it than of the other pixels' (one view's mask's stray pixels are outvoted), and the "
-        "gate ends where the surface of what may not change is nearer (--no-gate-vote: every "
-        "view's editable pixels count, the gate spreads --gate-outer beyond them)",
+        "gate ends where the surface of what may not change is nearer (held-out dB, seeds 0 / "
+        "1: spot +2.09 / +1.30, figurine +0.98 / +0.19, toycar -0.41 / -0.37; the unedited "
+        "region up to 4 dB lower where the views' masks take more than the part, as spot's "
+        "rear views do; --no-gate-vote: "
+        "every view's editable pixels count, the gate spreads --gate-outer beyond them)",
     )
     w_reg_field: float = option(
         1.0, "weight of |F_dT|^2 at surface points of unedited pixels (3D side of L_reg)", low=0
@@ -824,7 +827,9 @@ def texture_steps(
 
         points = torch.cat([surface(v, True) for v in views]).cpu().numpy()
         others = None
-        if cfg.gate_vote:  # the other pixels' surface votes against (EditGate)
+        # the other pixels' surface votes against (EditGate); lifted masks are one 3D region
+        # seen from every view, with no stray pixels to outvote
+        if cfg.gate_vote and mask_source == "features":
             others = torch.cat([surface(v, False) for v in views]).cpu().numpy()
         editing.gate.set_from_points(
             points, cfg.gate_inner, cfg.gate_outer, cfg.gate_resolution, others
