@@ -227,13 +227,13 @@ class TextureEditConfig(LoopOptions):
     gate_resolution: int = option(128, "gate: voxels per side over [-1, 1]^3", low=2)
     gate_vote: bool = option(
         True,
-        "gate, with the semantic masks: a voxel is the part's where more of the views' editable pixels' samples fall in "
-        "it than of the other pixels' (one view's mask's stray pixels are outvoted), and the "
-        "gate ends where the surface of what may not change is nearer (held-out dB, seeds 0 / "
-        "1: spot +2.09 / +1.30, figurine +0.98 / +0.19, toycar -0.41 / -0.37; the unedited "
-        "region up to 4 dB lower where the views' masks take more than the part, as spot's "
-        "rear views do; --no-gate-vote: "
-        "every view's editable pixels count, the gate spreads --gate-outer beyond them)",
+        "gate, with the semantic masks: a voxel is the part's where more of the views' editable "
+        "pixels' samples fall in it than of the other pixels' (one view's mask's stray pixels "
+        "are outvoted), and the gate ends where the surface of what may not change is nearer "
+        "(held-out dB, seeds 0 / 1: spot +2.09 / +1.30, figurine +0.98 / +0.19, toycar -0.41 / "
+        "-0.37; the unedited region up to 4 dB lower where the views' masks take more than the "
+        "part, as spot's rear views do; --no-gate-vote: every view's editable pixels count, the "
+        "gate spreads --gate-outer beyond them)",
     )
     w_reg_field: float = option(
         1.0, "weight of |F_dT|^2 at surface points of unedited pixels (3D side of L_reg)", low=0

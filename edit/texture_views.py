@@ -115,7 +115,8 @@ def sample_view(
 ) -> ViewSamples:
     """Renders `camera` through the frozen `template` (as `render.renderer.render_rays`, without
     perturbation) and keeps its samples of weight > min_weight (0 keeps every sample) with
-    their colour c_s; features: also keeps each sample's geometry feature (the template's "geo_feat")."""
+    their colour c_s; features: also keeps each sample's geometry feature (the template's
+    "geo_feat")."""
     device = device or torch.device("cpu")
     o_all, d_all = (torch.from_numpy(a).to(device) for a in camera.rays())
     n = len(o_all)
