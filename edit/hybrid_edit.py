@@ -62,7 +62,13 @@ from edit.geometry_edit import (
     with_fit_band,
 )
 from edit.template_scene import load_template_scene
-from edit.texture_edit import TextureEditConfig, texture_parts, texture_steps, write_previews
+from edit.texture_edit import (
+    TextureEditConfig,
+    texture_parts,
+    texture_steps,
+    uses_part_colour,
+    write_previews,
+)
 from recon.rundir import RunDir
 from recon.training import Trainer, exponential_decay, loop_options
 from render.configs import to_dict, validate
@@ -315,7 +321,7 @@ def _edit(
                 "editing": tex_editing.state_dict(),
                 "compositor": None if compositor is None else compositor.state_dict(),
                 "compositor_region": bool(tcfg.gate),  # g = the gate rendered
-                "part_colour": bool(tcfg.gate and tcfg.part_colour),
+                "part_colour": uses_part_colour(tcfg),
             },
         },
     )

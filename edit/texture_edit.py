@@ -325,6 +325,13 @@ RECORDED_BEFORE = {
     "gate_vote": False,
 }
 
+
+def uses_part_colour(cfg: TextureEditConfig) -> bool:
+    """Whether the compositor transforms the part's share P of each pixel (`part_colour`: the
+    affine head with the gate; the residual head has no transform to restrict)."""
+    return bool(cfg.compositor and cfg.gate and cfg.part_colour and cfg.compositor_head == "affine")
+
+
 # The compositor UNet's learning rate by head (`lr_compositor` None).
 COMPOSITOR_LR = {"residual": 5e-3, "affine": 2.5e-3}
 
@@ -625,7 +632,7 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
                 "editing": editing.state_dict(),
                 "compositor": None if compositor is None else compositor.state_dict(),
                 "compositor_region": bool(cfg.gate),  # g = the gate rendered (else from I_m)
-                "part_colour": bool(cfg.gate and cfg.part_colour),  # the head's P (module doc)
+                "part_colour": uses_part_colour(cfg),  # the head's P (module doc)
                 "band_width": float(fit_cfg.band_width),
             },
         )
@@ -839,7 +846,7 @@ def texture_steps(
         """The view with the gate rendered into it (the compositor's g), once per view."""
         if cfg.gate and view.region is None:
             view.region, part_rgb = render_gate(view, editing.gate)
-            view.part_rgb = part_rgb if cfg.part_colour else None
+            view.part_rgb = part_rgb if uses_part_colour(cfg) else None
         return view
 
     k_view = with_region(setup.view)

@@ -176,6 +176,15 @@ def test_affine_head_transforms_only_the_parts_share_of_a_rim_pixel():
     assert (whole - out[:, 0]).abs().max() > 0.03
 
 
+def test_the_parts_share_is_used_by_the_affine_head_with_the_gate_only():
+    from edit.texture_edit import uses_part_colour
+
+    assert uses_part_colour(TextureEditConfig())  # the defaults: affine head, gate
+    for change in ({"compositor_head": "residual"}, {"gate": False}, {"compositor": False}):
+        assert not uses_part_colour(TextureEditConfig(**change)), change
+    assert not uses_part_colour(TextureEditConfig(part_colour=False))
+
+
 def test_affine_head_shared_transform_has_its_own_learning_rate():
     from edit.texture_edit import texture_parts
 
