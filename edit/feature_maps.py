@@ -25,7 +25,8 @@ from render.feature_field import render_feature_map
 
 
 class FeatureMapRenderer:
-    """camera -> (features [C, H, W] float32 tensor, object mask [H, W] bool numpy).
+    """camera -> (features [C, H, W] float32 tensor, object mask [H, W] bool numpy); `maps`
+    adds the surface points [H, W, 3] float32 numpy (of the shape rendered: before the warp).
 
     space: "centred" = the field's PCA coefficients (DINO features minus the object's mean
     feature), "dino" = decoded DINO features; render_scale in (0, 1]: fraction of the camera's
@@ -55,6 +56,11 @@ class FeatureMapRenderer:
                 self.warp = geometry.field.canonical
 
     def __call__(self, camera) -> tuple[torch.Tensor, np.ndarray]:
+        feats, on_object, _ = self.maps(camera)
+        return feats, on_object
+
+    def maps(self, camera) -> tuple[torch.Tensor, np.ndarray, np.ndarray]:
+        """(features [C, H, W], object mask [H, W], surface points [H, W, 3])."""
         scale = min(max(self.render_scale, 0.0), 1.0)
         w, h = max(1, round(camera.width * scale)), max(1, round(camera.height * scale))
         small = camera.resized(w, h) if (w, h) != (camera.width, camera.height) else camera
@@ -70,9 +76,15 @@ class FeatureMapRenderer:
         )
         feats = torch.from_numpy(out["features"]).permute(2, 0, 1)  # [C, h, w]
         opacity = torch.from_numpy(out["opacity"])[None]  # [1, h, w]
+        points = torch.from_numpy(out["points"]).permute(2, 0, 1)  # [3, h, w]
         if small is not camera:
             size = (camera.height, camera.width)
-            feats = F.interpolate(feats[None], size=size, mode="bilinear", align_corners=False)[0]
-            opacity = F.interpolate(opacity[None], size=size, mode="bilinear", align_corners=False)
-            opacity = opacity[0]
-        return feats, (opacity[0] >= self.min_opacity).numpy()
+
+            def up(x: torch.Tensor) -> torch.Tensor:
+                return F.interpolate(x[None], size=size, mode="bilinear", align_corners=False)[0]
+
+            # points weighted by opacity, so a silhouette pixel is not pulled to the origin
+            feats, points, opacity = up(feats), up(points * opacity), up(opacity)
+            points = points / opacity.clamp_min(1e-6)
+        on_object = (opacity[0] >= self.min_opacity).numpy()
+        return feats, on_object, points.permute(1, 2, 0).numpy()

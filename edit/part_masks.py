@@ -7,7 +7,9 @@ rendered feature map gives its editable pixels (nearer to the painted part than 
 the paper's threshold 0.5 with --rule threshold), restricted to the object (template opacity),
 edges guided by the view's image. Writes DIR/masks/<view>.png (0/255),
 DIR/overlay_contact_sheet.png, DIR/semantic_centres.npy ([K, C] painted part),
-DIR/semantic_rest_centres.npy ([K, C] rest, contrast rule) and DIR/metrics.json.
+DIR/semantic_rest_centres.npy ([K, C] rest, contrast rule), with the spatial term the centres'
+surface points DIR/semantic_centre_points.npy and DIR/semantic_rest_centre_points.npy ([K, 3],
+run units), and DIR/metrics.json.
 """
 
 from __future__ import annotations
@@ -162,14 +164,14 @@ def _semantic_masks(run_dir, view, region, out_dir, cfg: MasksConfig, mask_cfg, 
     )
 
     t0 = time.perf_counter()
-    feats, on_object = render(edit_cam)
+    feats, on_object, points = render.maps(edit_cam)
     painted = region & on_object
     if not painted.any():
         raise SineError(
             f"the painted region does not touch the object in view {edit_cam.name}: "
             "paint over the object's pixels"
         )
-    masks = SemanticMasks(feats, painted, mask_cfg, object_mask=on_object)
+    masks = SemanticMasks(feats, painted, mask_cfg, object_mask=on_object, points=points)
     seconds_fit = time.perf_counter() - t0
 
     out_dir = Path(out_dir)
@@ -177,9 +179,9 @@ def _semantic_masks(run_dir, view, region, out_dir, cfg: MasksConfig, mask_cfg, 
     for i, cam in enumerate(progress_bar(iterable=cameras, desc="masks", disable=not progress)):
         t0 = time.perf_counter()
         if i != index:
-            feats, on_object = render(cam)
+            feats, on_object, points = render.maps(cam)
         image = view_image(run, cam)
-        editable = masks.mask(feats, image, on_object).cpu().numpy() & on_object
+        editable = masks.mask(feats, image, on_object, points).cpu().numpy() & on_object
         seconds_render += time.perf_counter() - t0
         stem = Path(cam.name).stem
         write_mask(out_dir / "masks" / f"{stem}.png", editable)
@@ -192,10 +194,12 @@ def _semantic_masks(run_dir, view, region, out_dir, cfg: MasksConfig, mask_cfg, 
             image = np.ones((cam.height, cam.width, 3), np.float32)
         tiles.append(overlay(image, editable, cfg.tint, cfg.thumbnail_width, i == index))
     write_image(out_dir / "overlay_contact_sheet.png", contact_sheet(tiles, cfg.columns))
-    np.save(out_dir / "semantic_centres.npy", masks.centres.cpu().numpy().astype(np.float32))
-    if masks.other_centres is not None:
-        rest = masks.other_centres.cpu().numpy().astype(np.float32)
-        np.save(out_dir / "semantic_rest_centres.npy", rest)
+    for stem, centres in (("semantic", masks.centres), ("semantic_rest", masks.other_centres)):
+        if centres is None:
+            continue
+        for suffix, array in zip(("centres", "centre_points"), masks.split(centres)):
+            if array is not None:
+                np.save(out_dir / f"{stem}_{suffix}.npy", array.cpu().numpy().astype(np.float32))
     metrics = {
         "run": str(run.root),
         "edit_view": edit_cam.name,

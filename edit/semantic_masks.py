@@ -12,6 +12,13 @@ inside the region and K-means them ("part" centres). Two rules mark a pixel of a
   like it goes with itself. Without an object mask (or nothing outside the region) it falls back
   to `threshold`.
 
+With the contrast rule, a pixel's 3D surface point goes beside its feature (`spatial`, beyond the
+paper): the descriptor is [unit feature, spatial * (x - c) / r], c and r the centre and mean
+radius of the object's surface in the editing view. A part lies in one place: surface on another
+side of the object that looks like the painted part (white fur above and below a painted line)
+but lies among the rest of the object goes with the rest, while the part's own far side, next to
+the painted surface, still goes with the part.
+
 With the view's image at hand, the decision is refined: DINO features are blurred over a patch
 (~1/16 of the object), so the soft score (distance margin) is guided-filtered with the image,
 which moves the mask's edges onto the image's colour edges.
@@ -67,6 +74,14 @@ class SemanticMaskConfig:
     refine_eps: float = option(
         0.01, "guided-filter regularisation (image in [0, 1]): larger follows the image less"
     )
+    spatial: float = option(
+        0.25,
+        "contrast rule: weight of the pixel's 3D surface point beside its DINO feature (distance "
+        "in object radii times this, against unit-feature distances): surface that looks like "
+        "the painted part but lies among the rest of the object goes with the rest; 0: features "
+        "only (the paper)",
+        low=0.0,
+    )
     kmeans_init: int = option(3, "K-means restarts (scikit-learn n_init)")
     seed: int = option(0, "seed of the feature sampling and of K-means")
 
@@ -86,17 +101,28 @@ def _resize_mask(mask, size: tuple[int, int]) -> torch.Tensor:
     return F.interpolate(m[None, None].float(), size=size, mode="nearest-exact")[0, 0] > 0.5
 
 
-def fit_region_centres(features, region, config: SemanticMaskConfig | None = None) -> torch.Tensor:
-    """K-means centres [K, C] (unit length) of features [C, H, W] inside `region` [H, W].
+def _unit(x: torch.Tensor, unit_channels: int | None) -> torch.Tensor:
+    """Rows [N, D] with the first `unit_channels` columns (None: all) scaled to unit length."""
+    if unit_channels is None:
+        return F.normalize(x, dim=1)
+    return torch.cat([F.normalize(x[:, :unit_channels], dim=1), x[:, unit_channels:]], dim=1)
 
-    The region may have another resolution than the feature map (resized, nearest).
+
+def fit_region_centres(
+    features, region, config: SemanticMaskConfig | None = None, unit_channels: int | None = None
+) -> torch.Tensor:
+    """K-means centres [K, C] of features [C, H, W] inside `region` [H, W].
+
+    The features (and the centres) are L2-normalised: all channels, or the first
+    `unit_channels` (the rest, e.g. positions, are taken as they are). The region may have
+    another resolution than the feature map (resized, nearest).
     """
     from sklearn.cluster import KMeans
 
     cfg = config or SemanticMaskConfig()
     f = _as_chw(features)
     mask = _resize_mask(region, tuple(f.shape[1:]))
-    inside = F.normalize(f[:, mask.to(f.device)].T, dim=1).cpu().numpy()  # [N, C]
+    inside = _unit(f[:, mask.to(f.device)].T, unit_channels).cpu().numpy()  # [N, C]
     if len(inside) == 0:
         raise SineError("the painted region is empty: paint the part to edit in the editing view")
     rng = np.random.default_rng(cfg.seed)
@@ -106,14 +132,17 @@ def fit_region_centres(features, region, config: SemanticMaskConfig | None = Non
     k = min(cfg.num_clusters, len(np.unique(samples.round(6), axis=0)))
     km = KMeans(n_clusters=k, n_init=cfg.kmeans_init, random_state=cfg.seed).fit(samples)
     centres = torch.from_numpy(km.cluster_centers_).float()
-    return F.normalize(centres, dim=1).to(f.device)  # [K, C]
+    return _unit(centres, unit_channels).to(f.device)  # [K, C]
 
 
-def nearest_centre_distance(features, centres: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
-    """Distance [H, W] from each L2-normalised feature of [C, H, W] to its nearest centre."""
+def nearest_centre_distance(
+    features, centres: torch.Tensor, chunk: int = 65536, unit_channels: int | None = None
+) -> torch.Tensor:
+    """Distance [H, W] from each feature of [C, H, W] (L2-normalised as in `fit_region_centres`)
+    to its nearest centre."""
     f = _as_chw(features)
     c, h, w = f.shape
-    flat = F.normalize(f.reshape(c, -1).T, dim=1)  # [H*W, C]
+    flat = _unit(f.reshape(c, -1).T, unit_channels)  # [H*W, C]
     centres = centres.to(flat)
     out = torch.cat([torch.cdist(x, centres).min(dim=1).values for x in flat.split(chunk)])
     return out.reshape(h, w)
@@ -124,7 +153,8 @@ class SemanticMasks:
 
     features [C, H, W] of the editing view, region [H, W] the painted pixels, object_mask [H, W]
     the object's pixels in that view (needed by the contrast rule: the rest of the object is
-    object_mask minus the region grown by `rest_margin`).
+    object_mask minus the region grown by `rest_margin`), points [H, W, 3] the surface point of
+    each pixel (the contrast rule's `spatial` term; every view's `mask` then needs its points).
     """
 
     def __init__(
@@ -133,38 +163,74 @@ class SemanticMasks:
         region,
         config: SemanticMaskConfig | None = None,
         object_mask=None,
+        points=None,
     ):
         self.config = cfg = config or SemanticMaskConfig()
         if cfg.rule not in ("contrast", "threshold"):
             raise SineError(f"unknown mask rule {cfg.rule!r}: contrast or threshold")
-        self.centres = fit_region_centres(features, region, cfg)  # [K, C]
-        self.other_centres = None  # [K', C] (contrast rule)
+        rest = None
         if cfg.rule == "contrast" and object_mask is not None:
             rest = rest_of_object(region, object_mask, cfg.rest_margin)
-            if rest.sum() >= cfg.num_clusters:
-                self.other_centres = fit_region_centres(features, rest, cfg)
+            if rest.sum() < cfg.num_clusters:
+                rest = None
+        self.feature_dim = _as_chw(features).shape[0]
+        self.frame = None  # (centre [3], radius) of the object's surface: the spatial term's
+        if rest is not None and cfg.spatial > 0 and points is not None:
+            on = torch.as_tensor(np.asarray(object_mask, bool))
+            surface = torch.as_tensor(np.asarray(points, np.float32))[on]  # [N, 3]
+            centre = surface.mean(dim=0)
+            radius = float((surface - centre).norm(dim=1).mean().clamp_min(1e-6))
+            self.frame = (centre, radius)
+        described = self.descriptors(features, points)
+        unit = self.feature_dim
+        self.centres = fit_region_centres(described, region, cfg, unit)  # [K, C (+3)]
+        self.other_centres = None  # [K', C (+3)] (contrast rule)
+        if rest is not None:
+            self.other_centres = fit_region_centres(described, rest, cfg, unit)
 
     @property
     def rule(self) -> str:
         """The rule in use ('contrast' falls back to 'threshold' without a rest of the object)."""
         return "contrast" if self.other_centres is not None else "threshold"
 
-    def distance(self, features) -> torch.Tensor:
-        """[H, W] distance to the nearest part centre."""
-        return nearest_centre_distance(features, self.centres)
+    def split(self, centres: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Centres [K, C (+3)] -> (feature parts [K, C], surface points [K, 3] in run units, or
+        None without the spatial term)."""
+        feats = centres[:, : self.feature_dim]
+        if self.frame is None:
+            return feats, None
+        centre, radius = self.frame
+        points = centres[:, self.feature_dim :] * (radius / self.config.spatial) + centre.to(centres)
+        return feats, points
 
-    def score(self, features) -> torch.Tensor:
+    def descriptors(self, features, points=None) -> torch.Tensor:
+        """[C (+3), H, W]: the features, and with the spatial term the surface points [H, W, 3]
+        in the editing view's object frame times `spatial`."""
+        f = _as_chw(features)
+        if self.frame is None:
+            return f
+        if points is None:
+            raise ValueError("these masks weigh the surface point: give each view's points")
+        centre, radius = self.frame
+        x = torch.as_tensor(np.asarray(points, np.float32)).to(f)  # [H, W, 3]
+        x = (x - centre.to(f)) * (self.config.spatial / radius)
+        return torch.cat([F.normalize(f, dim=0), x.permute(2, 0, 1)], dim=0)
+
+    def score(self, features, points=None) -> torch.Tensor:
         """[H, W] soft decision, > 0 where editable: the distance margin to the rest's centres
         (contrast rule) or to the threshold."""
-        d_part = self.distance(features)
+        described = self.descriptors(features, points)
+        unit = self.feature_dim
+        d_part = nearest_centre_distance(described, self.centres, unit_channels=unit)
         if self.other_centres is None:
             return self.config.threshold - d_part
-        return nearest_centre_distance(features, self.other_centres) - d_part
+        return nearest_centre_distance(described, self.other_centres, unit_channels=unit) - d_part
 
-    def mask(self, features, image=None, object_mask=None) -> torch.Tensor:
+    def mask(self, features, image=None, object_mask=None, points=None) -> torch.Tensor:
         """Bool [H, W]: True where editable. With the view's image [H, W, 3] (in [0, 1]) and its
-        object mask [H, W] (which sets the filter radius), the edges follow the image's."""
-        score = self.score(features)
+        object mask [H, W] (which sets the filter radius), the edges follow the image's; points
+        [H, W, 3]: the view's surface points (needed when the masks weigh them)."""
+        score = self.score(features, points)
         if image is not None and object_mask is not None and self.config.refine:
             score = guided_refine(
                 score, image, object_mask, self.config.refine_radius, self.config.refine_eps

@@ -289,6 +289,13 @@ class TextureEditConfig(LoopOptions):
         "region keep the template (what the user saw and left unpainted stays, where the part's "
         "semantic mask reaches beyond the painting; texture mode only)",
     )
+    mask_spatial: float = option(
+        0.25,
+        "semantic masks: weight of each pixel's 3D surface point beside its DINO feature (see "
+        "`sine masks --spatial`): surface that looks like the painted part but lies among the "
+        "rest of the object keeps the template; 0: features only (the paper)",
+        low=0.0,
+    )
     region_dilate: int = option(6, "pixels the automatic editable region is grown by", low=0)
     lift_tol: float = option(
         0.02,
@@ -323,6 +330,7 @@ RECORDED_BEFORE = {
     "reference_mask": "none",
     "part_colour": False,
     "gate_vote": False,
+    "mask_spatial": 0.0,
 }
 
 
@@ -513,22 +521,23 @@ def editable_masker(run: RunDir, setup: TextureSetup, cfg, device, geometry=None
     has_features = require_features(run, cfg)
     if cfg.mask_source == "features" or (cfg.mask_source == "auto" and has_features):
         from edit.feature_maps import FeatureMapRenderer
-        from edit.semantic_masks import SemanticMasks
+        from edit.semantic_masks import SemanticMaskConfig, SemanticMasks
 
         renderer = FeatureMapRenderer(run.root, str(device), geometry=geometry)
-        feats, on_object = renderer(setup.camera)
+        feats, on_object, points = renderer.maps(setup.camera)
         painted = setup.region & on_object
         if not painted.any():
             raise SineError("the editable region does not touch the object in the editing view")
-        masks = SemanticMasks(feats, painted, object_mask=on_object)
+        mask_cfg = SemanticMaskConfig(spatial=cfg.mask_spatial)
+        masks = SemanticMasks(feats, painted, mask_cfg, object_mask=on_object, points=points)
         seen = None  # view K's surface, painted or not (the template's: not for a hybrid)
         if cfg.keep_seen and geometry is None:
             seen = LiftedRegion.from_view(setup.view, setup.region, cfg.lift_tol)
 
         def semantic(view: ViewSamples) -> torch.Tensor:
-            feats, on_obj = renderer(view.camera)
+            feats, on_obj, points = renderer.maps(view.camera)
             image = view.template_rgb.reshape(*view.size, 3).clamp(0, 1).cpu().numpy()
-            editable = masks.mask(feats, image, on_obj).cpu().numpy() & on_obj
+            editable = masks.mask(feats, image, on_obj, points).cpu().numpy() & on_obj
             editable = torch.from_numpy(editable.reshape(-1)).to(device)
             return editable & ~seen.kept(view) if seen is not None else editable
 

@@ -177,8 +177,9 @@ def render_feature_map(
     warp=None,
 ) -> dict[str, np.ndarray]:
     """One camera -> {"features" [H, W, C] (decoded, or [H, W, D] coefficients without decode),
-    "opacity" [H, W]}: features composited from the top-k samples per ray (default: as in
-    training) and divided by their weight (0 where the opacity is below `min_opacity`).
+    "opacity" [H, W], "points" [H, W, 3]}: features composited from the top-k samples per ray
+    (default: as in training) and divided by their weight (0 where the opacity is below
+    `min_opacity`); points likewise, the surface point of each pixel (before any warp).
     `warp`: samples [N, 3] -> the feature field's input points [N, 3] (e.g. a geometric edit's
     map to the template, whose `geometry` the `template` argument then wraps); default: as is."""
     device = device or features.mean.device
@@ -187,10 +188,13 @@ def render_feature_map(
     s = top_k_samples(template, sampler, o, d, top_k, bool(features.cfg.geo_feat_dim), chunk)
     with torch.no_grad():
         coeffs = torch.zeros(len(o), features.cfg.out_dim, device=device)  # [R, D]
+        surface = torch.zeros(len(o), 3, device=device)  # [R, 3]
         for a in range(0, len(s.ray), chunk):
             b = slice(a, a + chunk)
             geo = s.geo[b] if s.geo is not None else None
             points = s.points[b]  # [c, k, 3]
+            kept = volume.opacity(s.weights[b]).clamp_min(1e-3)[:, None]  # [c, 1]
+            surface[s.ray[b]] = (s.weights[b, :, None] * points).sum(dim=1) / kept
             if warp is not None:
                 points = warp(points.reshape(-1, 3)).view(points.shape)
             coeffs[s.ray[b]] = composite_features(features, points, s.weights[b], geo)
@@ -198,10 +202,12 @@ def render_feature_map(
         fg = acc >= min_opacity
         out = features.decode(coeffs) if decode else coeffs
         out = torch.where(fg[:, None], out, torch.zeros_like(out))
+        surface = torch.where(fg[:, None], surface, torch.zeros_like(surface))
     h, w = camera.height, camera.width
     return {
         "features": out.reshape(h, w, -1).cpu().numpy().astype(np.float32),
         "opacity": acc.reshape(h, w).cpu().numpy(),
+        "points": surface.reshape(h, w, 3).cpu().numpy().astype(np.float32),
     }
 
 

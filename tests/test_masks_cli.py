@@ -48,6 +48,8 @@ def test_masks_cli_writes_masks_sheet_and_metrics(run_root, tmp_path):
     assert np.load(out / "semantic_centres.npy").shape == (15, 64)  # centred: PCA coefficients
     assert metrics["rule"] == "contrast" and metrics["config"]["refine"] is True
     assert np.load(out / "semantic_rest_centres.npy").shape == (15, 64)
+    centre_points = np.load(out / "semantic_centre_points.npy")  # the spatial term's, run units
+    assert centre_points.shape == (15, 3) and np.abs(centre_points).max() < 1.5
     # the part's mask agrees with the GT body in the other views better than chance
     ious = []
     for cam in cams[2:]:

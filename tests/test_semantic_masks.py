@@ -132,6 +132,47 @@ def test_contrast_rule_falls_back_without_a_rest_of_the_object():
     assert SemanticMasks(feats, everything, SemanticMaskConfig(num_samples=50)).rule == "threshold"
 
 
+def _plane_points(h: int, w: int, x0: float = 0.0, x1: float = 1.0) -> np.ndarray:
+    """[h, w, 3] surface points on the plane z = 0: x from x0 to x1 across, y from 0 to 1 down."""
+    x = np.linspace(x0, x1, w, dtype=np.float32)[None, :].repeat(h, 0)
+    y = np.linspace(0.0, 1.0, h, dtype=np.float32)[:, None].repeat(w, 1)
+    return np.stack([x, y, np.zeros_like(x)], axis=-1)
+
+
+def test_spatial_term_gives_a_far_look_alike_to_the_rest():
+    # Editing view: part 0 (painted, e_0) on the left half of the surface (x < 0.5), part 1 on
+    # the right half. Object centre (0.5, 0.5, 0), mean radius ~0.38.
+    lab = np.zeros((20, 20), int)
+    lab[:, 10:] = 1
+    feats = _feature_map(lab, seed=0, noise=0.0)
+    painted, obj, points = lab == 0, np.ones_like(lab, bool), _plane_points(20, 20)
+    # Another view, three pixels: the part's unseen far side at x = 0.2 (e_0), a look-alike of
+    # the part (e_0) at x = 0.95 among part 1's surface, and part 1 itself at x = 0.7.
+    other = torch.stack([_basis(0), _basis(0), _basis(1)], dim=1)[:, None]  # [C, 1, 3]
+    where = np.array([[[0.2, 0.5, 0.0], [0.95, 0.5, 0.0], [0.7, 0.5, 0.0]]], np.float32)
+
+    plain = SemanticMasks(feats, painted, SemanticMaskConfig(num_samples=100, spatial=0.0), obj)
+    assert plain.mask(other)[0].tolist() == [True, True, False]  # features alone: look-alike
+    # Look-alike: feature distance 0 to the part vs sqrt(2) to part 1; spatial distance ~0.45 to
+    # the part's nearest surface (x < 0.5), i.e. 4 * 0.45 / 0.38 ~ 4.7 > sqrt(2): the rest's.
+    cfg = SemanticMaskConfig(num_samples=100, spatial=4.0, rest_margin=0)
+    spatial = SemanticMasks(feats, painted, cfg, obj, points=points)
+    assert spatial.centres.shape[1] == C + 3
+    assert spatial.mask(other, points=where)[0].tolist() == [True, False, False]
+    assert spatial.mask(feats, points=points).numpy().tolist() == painted.tolist()
+    # the centres' surface points, back in run units, lie on the painted half
+    feature_part, centre_points = spatial.split(spatial.centres)
+    assert feature_part.shape == (len(spatial.centres), C)
+    assert (centre_points[:, 0] < 0.5).all() and centre_points[:, 2].abs().max() < 1e-5
+    with pytest.raises(ValueError, match="points"):
+        spatial.mask(other)
+    # the threshold rule has no rest to weigh positions against: features only
+    rule = SemanticMaskConfig(num_samples=100, spatial=4.0, rule="threshold")
+    threshold = SemanticMasks(feats, painted, rule, obj, points=points)
+    assert threshold.split(threshold.centres)[1] is None
+    assert threshold.mask(other)[0].tolist() == [True, True, False]
+
+
 def test_guided_refinement_moves_a_blurred_edge_onto_the_image_edge():
     from edit.semantic_masks import guided_refine
 
