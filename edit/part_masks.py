@@ -197,7 +197,7 @@ def _semantic_masks(run_dir, view, region, out_dir, cfg: MasksConfig, mask_cfg, 
     for stem, centres in (("semantic", masks.centres), ("semantic_rest", masks.other_centres)):
         if centres is None:
             continue
-        for suffix, array in zip(("centres", "centre_points"), masks.split(centres)):
+        for suffix, array in zip(("centres", "centre_points"), masks.split(centres), strict=True):
             if array is not None:
                 np.save(out_dir / f"{stem}_{suffix}.npy", array.cpu().numpy().astype(np.float32))
     metrics = {

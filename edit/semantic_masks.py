@@ -200,7 +200,9 @@ class SemanticMasks:
         if self.frame is None:
             return feats, None
         centre, radius = self.frame
-        points = centres[:, self.feature_dim :] * (radius / self.config.spatial) + centre.to(centres)
+        points = centres[:, self.feature_dim :] * (radius / self.config.spatial) + centre.to(
+            centres
+        )
         return feats, points
 
     def descriptors(self, features, points=None) -> torch.Tensor:
