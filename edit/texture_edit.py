@@ -62,7 +62,8 @@ graph, F_dT queried in chunks of samples):
   the template; rendered into each view, the same gate is the compositor's g (its output acts
   on the part's pixels only, on every side of the part). `gate_vote` (semantic masks): the other
   pixels' samples vote against, so one view's stray editable pixels do not open the gate, and
-  it ends where what may not change is nearer than the part.
+  it ends where what may not change is nearer than the part; a hole the part's voxels enclose
+  (a spot of the part a few views' masks miss) stays the part's.
 
 `--compositor-head affine` (beyond the paper, the default): the compositor's UNet predicts a
 colour transform per pixel (A I + b in RGB) instead of a residual (`residual`, the paper's);
@@ -229,7 +230,8 @@ class TextureEditConfig(LoopOptions):
         True,
         "gate, with the semantic masks: a voxel is the part's where more of the views' editable "
         "pixels' samples fall in it than of the other pixels' (one view's mask's stray pixels "
-        "are outvoted), and the gate ends where the surface of what may not change is nearer "
+        "are outvoted; a hole the part's voxels enclose stays the part's), and the gate ends "
+        "where the surface of what may not change is nearer "
         "(held-out dB, seeds 0 / 1: spot +2.09 / +1.30, figurine +0.98 / +0.19, toycar -0.41 / "
         "-0.37; the unedited region up to 4 dB lower where the views' masks take more than the "
         "part, as spot's rear views do; --no-gate-vote: every view's editable pixels count, the "

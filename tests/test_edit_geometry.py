@@ -493,6 +493,28 @@ def test_edit_gate_vote_outvotes_stray_points_and_stops_at_the_neighbours_surfac
     assert w[2] == 0.0 and w[3] == 0.0
 
 
+def test_edit_gate_vote_keeps_a_hole_the_part_encloses():
+    """A flat patch of the part (z = 0, x and y in [0, 0.3]) whose points in one voxel are all
+    called something else by the views (a spot their masks miss): the vote alone gives that
+    voxel away and the stop zeroes the gate there; the part's voxels enclose it, so it stays
+    the part's. The neighbour's patch beside it (x in [0.36, 0.6]) stays shut."""
+    from edit.edit_gate import EditGate
+
+    grid = np.linspace(0.0, 0.3, 41)
+    xs, ys = np.meshgrid(grid, grid)
+    part = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1)
+    voxel = 2.0 / 64  # the hole: the voxel holding (0.15, 0.15, 0), [0.125, 0.15625) in x and y
+    in_hole = np.all((part[:, :2] >= 0.125) & (part[:, :2] < 0.125 + voxel), axis=1)
+    hole = part[in_hole]
+    neighbour = part[~in_hole][:200].copy()
+    neighbour[:, 0] = 0.36 + 0.8 * neighbour[:, 0]
+    gate = EditGate()
+    gate.set_from_points(part[~in_hole], 0.02, 0.05, 64, others=np.concatenate([hole, neighbour]))
+    centres = [[0.140625, 0.140625], [0.046875, 0.234375], [0.453125, 0.109375]]  # voxels'
+    x = torch.tensor([[a, b, voxel / 2] for a, b in centres])
+    assert gate(x).tolist() == [1.0, 1.0, 0.0]
+
+
 def test_an_identity_edit_renders_the_template_exactly_in_the_fit_band(tiny_fitted_run):
     """Sampled in the template fit's band (the default: band_width None), an editing field
     that moves nothing renders the template's pixels; a wider band samples other points, so
