@@ -18,8 +18,9 @@ and to the rest of the object, and marks a pixel of any view editable when its n
 is nearer to the painted part's centres than to the rest's (--rule contrast, default) or within
 --threshold of them (--rule threshold, the paper's rule). With the contrast rule each pixel's 3D
 surface point counts beside its feature (--spatial; 0 for features only): surface that looks like
-the painted part but lies among the rest of the object goes with the rest. Paint the whole part as the editing view
-shows it: with the contrast rule, what is left unpainted counts as the rest of the object. Mask
+the painted part but lies among the rest of the object goes with the rest. Paint the whole part
+as the editing view shows it: with the contrast rule, what is left unpainted counts as the rest
+of the object. Mask
 edges are snapped to the view's colour edges (guided filter; --no-refine to skip). Writes
 DIR/masks/<view>.png, DIR/overlay_contact_sheet.png, DIR/semantic_centres.npy (and
 semantic_rest_centres.npy; with --spatial, the centres' surface points *_centre_points.npy) and

@@ -200,10 +200,8 @@ class SemanticMasks:
         if self.frame is None:
             return feats, None
         centre, radius = self.frame
-        points = centres[:, self.feature_dim :] * (radius / self.config.spatial) + centre.to(
-            centres
-        )
-        return feats, points
+        scaled = centres[:, self.feature_dim :]  # (x - c) * spatial / r
+        return feats, scaled * (radius / self.config.spatial) + centre.to(centres)
 
     def descriptors(self, features, points=None) -> torch.Tensor:
         """[C (+3), H, W]: the features, and with the spatial term the surface points [H, W, 3]

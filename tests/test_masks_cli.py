@@ -124,3 +124,14 @@ def test_half_scale_feature_maps_match_full_scale(run_root):
     assert (obj_full != obj_half).mean() < 0.05  # only edge pixels differ
     cos = torch.nn.functional.cosine_similarity(full[:, both], half[:, both], dim=0)
     assert cos.median() > 0.95, cos.median()
+    # the surface points: on the camera's rays at the template's depth, and at half scale the
+    # same up to the upsampling (opacity-weighted, so silhouette pixels stay on the object)
+    _, _, at_full = FeatureMapRenderer(run_root, render_scale=1.0).maps(cam)
+    _, _, at_half = FeatureMapRenderer(run_root, render_scale=0.5).maps(cam)
+    origins, dirs = cam.rays()  # [H*W, 3]
+    flat = at_full.reshape(-1, 3) - origins
+    along = (flat * dirs).sum(axis=1, keepdims=True) / (dirs * dirs).sum(axis=1, keepdims=True)
+    off_ray = np.linalg.norm(flat - along * dirs, axis=1).reshape(64, 64)
+    assert off_ray[obj_full].max() < 1e-4 and (along.reshape(64, 64)[obj_full] > 0).all()
+    gap = np.linalg.norm(at_full - at_half, axis=-1)[obj_full & obj_half]
+    assert np.median(gap) < 0.02 and np.abs(at_half[obj_half]).max() < 1.5

@@ -132,9 +132,9 @@ def test_contrast_rule_falls_back_without_a_rest_of_the_object():
     assert SemanticMasks(feats, everything, SemanticMaskConfig(num_samples=50)).rule == "threshold"
 
 
-def _plane_points(h: int, w: int, x0: float = 0.0, x1: float = 1.0) -> np.ndarray:
-    """[h, w, 3] surface points on the plane z = 0: x from x0 to x1 across, y from 0 to 1 down."""
-    x = np.linspace(x0, x1, w, dtype=np.float32)[None, :].repeat(h, 0)
+def _plane_points(h: int, w: int) -> np.ndarray:
+    """[h, w, 3] surface points on the plane z = 0: x from 0 to 1 across, y from 0 to 1 down."""
+    x = np.linspace(0.0, 1.0, w, dtype=np.float32)[None, :].repeat(h, 0)
     y = np.linspace(0.0, 1.0, h, dtype=np.float32)[:, None].repeat(w, 1)
     return np.stack([x, y, np.zeros_like(x)], axis=-1)
 
