@@ -384,13 +384,9 @@ def compare_video(dirs: list[Path], names: list[str], path: Path, fps: float) ->
 # ---- the demo -----------------------------------------------------------------------------
 def has_mirror_plane(run) -> bool:
     """Whether the run's proxy mesh has a clear mirror plane (what `sine edit --symmetric` needs)."""
-    import trimesh
+    from edit.shape_prior import proxy_mirror_plane
 
-    from edit.shape_prior import mirror_plane
-    from recon.fit import template_proxy
-
-    mesh = trimesh.load(template_proxy(run), force="mesh", process=False)
-    return mirror_plane(np.asarray(mesh.vertices, np.float64)) is not None
+    return proxy_mirror_plane(run) is not None
 
 
 def run_demo(cfg: DemoConfig) -> dict:

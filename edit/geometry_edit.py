@@ -147,7 +147,12 @@ class GeometryEditConfig(LoopOptions):
         25, "steps between re-warping the proxy and rebuilding its BVH", low=1
     )
     region_dilate: int = option(6, "pixels the automatic editable region is grown by", low=0)
-    symmetric: bool = option(False, "mirror the prior's handles across the proxy's mirror plane")
+    symmetric: bool = option(
+        False,
+        "the object is mirror-symmetric (the proxy's mirror plane): a geometry edit mirrors the "
+        "prior's handles across it; a texture edit mirrors view K's painting (the mirrored "
+        "painted surface may change, with --keep-seen the mirrored unpainted surface stays)",
+    )
     visibility_tol: float = option(
         0.02, "depth tolerance (run units) of visible proxy vertices", low=0
     )

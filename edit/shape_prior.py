@@ -240,6 +240,16 @@ def mirror_plane(vertices: np.ndarray, max_error: float = 0.02) -> np.ndarray | 
     return best if best_err <= max_error * radius else None
 
 
+def proxy_mirror_plane(run) -> np.ndarray | None:
+    """The mirror plane (n, D) of a run's proxy mesh (`mirror_plane`), or None."""
+    import trimesh
+
+    from recon.fit import template_proxy
+
+    mesh = trimesh.load(template_proxy(run), force="mesh", process=False)
+    return mirror_plane(np.asarray(mesh.vertices, np.float64))
+
+
 def mirror_handles(handles: Handles, vertices: np.ndarray, plane: np.ndarray) -> Handles:
     """Adds, for every handle, the vertex opposite it moved by the mirrored displacement (unless
     that vertex is already a handle or an anchor, or lies on the plane itself)."""

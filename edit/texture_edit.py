@@ -298,6 +298,13 @@ class TextureEditConfig(LoopOptions):
         "rest of the object keeps the template; 0: features only (the paper)",
         low=0.0,
     )
+    symmetric: bool = option(
+        False,
+        "the object is mirror-symmetric (the proxy's mirror plane, as for geometry edits): view "
+        "K's painting mirrored across it also tells the side view K does not see; there the "
+        "mirrored painted surface may change and, with --keep-seen, the mirrored unpainted "
+        "surface keeps the template",
+    )
     region_dilate: int = option(6, "pixels the automatic editable region is grown by", low=0)
     lift_tol: float = option(
         0.02,
@@ -521,6 +528,14 @@ def editable_masker(run: RunDir, setup: TextureSetup, cfg, device, geometry=None
     geometry: the scene whose feature maps the semantic masks take (default: the template; a
     hybrid edit's `deformed_template`, see `edit.feature_maps.FeatureMapRenderer`)."""
     has_features = require_features(run, cfg)
+    lifted = LiftedRegion.from_view(setup.view, setup.region, cfg.lift_tol)  # view K's painting
+    if cfg.symmetric:
+        from edit.shape_prior import proxy_mirror_plane
+
+        plane = proxy_mirror_plane(run)
+        if plane is None:
+            raise SineError("--symmetric: the proxy mesh has no clear mirror plane")
+        lifted = lifted.mirrored(plane)
     if cfg.mask_source == "features" or (cfg.mask_source == "auto" and has_features):
         from edit.feature_maps import FeatureMapRenderer
         from edit.semantic_masks import SemanticMaskConfig, SemanticMasks
@@ -532,19 +547,23 @@ def editable_masker(run: RunDir, setup: TextureSetup, cfg, device, geometry=None
             raise SineError("the editable region does not touch the object in the editing view")
         mask_cfg = SemanticMaskConfig(spatial=cfg.mask_spatial)
         masks = SemanticMasks(feats, painted, mask_cfg, object_mask=on_object, points=points)
-        seen = None  # view K's surface, painted or not (the template's: not for a hybrid)
-        if cfg.keep_seen and geometry is None:
-            seen = LiftedRegion.from_view(setup.view, setup.region, cfg.lift_tol)
+        # view K's surface, painted or not, and its mirror image: the template's (not a
+        # hybrid's edited shape)
+        seen = lifted if geometry is None else None
 
         def semantic(view: ViewSamples) -> torch.Tensor:
             feats, on_obj, points = renderer.maps(view.camera)
             image = view.template_rgb.reshape(*view.size, 3).clamp(0, 1).cpu().numpy()
             editable = masks.mask(feats, image, on_obj, points).cpu().numpy() & on_obj
             editable = torch.from_numpy(editable.reshape(-1)).to(device)
-            return editable & ~seen.kept(view) if seen is not None else editable
+            if seen is not None and cfg.symmetric:  # the painting's mirror image may change
+                editable |= seen.editable(view)
+            if seen is not None and cfg.keep_seen:
+                editable &= ~seen.kept(view)
+            return editable
 
         return semantic, "features"
-    return LiftedRegion.from_view(setup.view, setup.region, cfg.lift_tol).editable, "lifted"
+    return lifted.editable, "lifted"
 
 
 # ---- training -----------------------------------------------------------------------------

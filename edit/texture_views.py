@@ -300,6 +300,14 @@ class LiftedRegion:
             tol = max(tol, 2.0 * footprint)
         return cls(points, inside, tol)
 
+    def mirrored(self, plane: np.ndarray) -> LiftedRegion:
+        """The region with its points' mirror images in `plane` (n, D; n.x = D) added: on a
+        mirror-symmetric object, the side the editing view did not see painted as its mirror."""
+        from edit.shape_prior import reflect
+
+        points = np.concatenate([self.points, reflect(self.points, plane)])
+        return LiftedRegion(points, np.concatenate([self.inside, self.inside]), self.tol)
+
     def editable(self, view: ViewSamples) -> torch.Tensor:
         """[P] bool pixels of `view` that may change: their surface point is near one the
         editing view saw inside the region."""

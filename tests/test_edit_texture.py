@@ -449,6 +449,39 @@ def test_lifted_region_follows_the_painted_half_and_keeps_the_unseen_side(tiny_f
     assert lifted.kept(far).float().mean() < 0.05
 
 
+def test_mirrored_painting_reaches_the_side_view_k_does_not_see(tiny_fitted_run):
+    """The body painted in view K (the toy car's side, y > 0): across the proxy's mirror plane
+    (y = 0) the painting marks the body on the far side, which the opposite view shows and
+    view K's own lifted points do not reach; what view K saw unpainted is kept there too. (The
+    tiny template's surface lies ~0.05 from its mirror image: a tolerance of 0.1.)"""
+    from edit.shape_prior import proxy_mirror_plane
+
+    run = RunDir(tiny_fitted_run)
+    template, background, fit_cfg = load_fitted(run.root)
+    sampler = make_sampler(fit_cfg, run)
+    frames = run.load_cameras().frames
+    plane = proxy_mirror_plane(run)
+    assert plane is not None and abs(plane[1]) > 0.99  # the car's mirror plane, normal y
+    body = read_label_map(tiny_fitted_run / "labels" / frames[VIEW].name) == PART
+    lifted = LiftedRegion.from_view(
+        sample_view(frames[VIEW], template, sampler, background), body, 0.1
+    )
+    mirrored = lifted.mirrored(plane)
+    assert len(mirrored.points) == 2 * len(lifted.points)
+    opposite = (VIEW + len(frames) // 2) % len(frames)
+    far = sample_view(frames[opposite], template, sampler, background)
+    far_body = (
+        read_label_map(tiny_fitted_run / "labels" / frames[opposite].name).reshape(-1) == PART
+    )
+    far_obj = far.opacity.numpy() > 0.5
+    assert lifted.editable(far).float().mean() < 0.02  # view K never saw this side
+    editable = mirrored.editable(far).numpy()
+    iou = (editable & far_body).sum() / (editable | far_body).sum()
+    kept = mirrored.kept(far).numpy()
+    assert iou > 0.7, iou
+    assert kept[far_obj & ~far_body].mean() > 0.8 and kept[far_body].mean() < 0.2
+
+
 def test_semantic_masks_keep_what_view_k_saw_unpainted(tiny_fitted_run, tmp_path_factory):
     """The front half of the body painted in view K: the body's semantic mask reaches its
     unpainted half too; with keep_seen that half keeps the template in view K and wherever
