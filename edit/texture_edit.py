@@ -52,7 +52,9 @@ graph, F_dT queried in chunks of samples):
   included, keeps the template (`mask_source`; run `sine features` to reach the part's unseen
   sides). With semantic masks, beyond the paper (`keep_seen`): a pixel whose surface point is
   near one view K showed outside the region keeps the template too (the part's mask may reach
-  beyond what the user painted; what they saw and left stays in every view). The 3D side of
+  beyond what the user painted; what they saw and left stays in every view). `symmetric`: view
+  K's lifted painting mirrored across the proxy's mirror plane counts as seen too (the mirrored
+  painted surface may change, the mirrored unpainted one stays). The 3D side of
   L_reg (the paper's holds F_dG to zero at background points; here F_dT): w_reg_field
   ||m'(x)||^2 (weighted by the samples' rendering weights) at the samples of the step's
   unedited pixels, so F_dT's hash table and MLP cannot leak the edit's colour over the whole
