@@ -204,8 +204,9 @@ class SemanticMasks:
         return feats, scaled * (radius / self.config.spatial) + centre.to(centres)
 
     def descriptors(self, features, points=None) -> torch.Tensor:
-        """[C (+3), H, W]: the features, and with the spatial term the surface points [H, W, 3]
-        in the editing view's object frame times `spatial`."""
+        """[C (+3), H, W]: the features (normalised where distances are taken, over the first
+        `feature_dim` channels), and with the spatial term the surface points [H, W, 3] in the
+        editing view's object frame times `spatial`."""
         f = _as_chw(features)
         if self.frame is None:
             return f
@@ -214,7 +215,7 @@ class SemanticMasks:
         centre, radius = self.frame
         x = torch.as_tensor(np.asarray(points, np.float32)).to(f)  # [H, W, 3]
         x = (x - centre.to(f)) * (self.config.spatial / radius)
-        return torch.cat([F.normalize(f, dim=0), x.permute(2, 0, 1)], dim=0)
+        return torch.cat([f, x.permute(2, 0, 1)], dim=0)
 
     def score(self, features, points=None) -> torch.Tensor:
         """[H, W] soft decision, > 0 where editable: the distance margin to the rest's centres
