@@ -530,14 +530,18 @@ def editable_masker(run: RunDir, setup: TextureSetup, cfg, device, geometry=None
     geometry: the scene whose feature maps the semantic masks take (default: the template; a
     hybrid edit's `deformed_template`, see `edit.feature_maps.FeatureMapRenderer`)."""
     has_features = require_features(run, cfg)
-    lifted = LiftedRegion.from_view(setup.view, setup.region, cfg.lift_tol)  # view K's painting
-    if cfg.symmetric:
+
+    def painting() -> LiftedRegion:  # view K's painting on the surface (and its mirror image)
+        lifted = LiftedRegion.from_view(setup.view, setup.region, cfg.lift_tol)
+        if not cfg.symmetric:
+            return lifted
         from edit.shape_prior import proxy_mirror_plane
 
         plane = proxy_mirror_plane(run)
         if plane is None:
             raise SineError("--symmetric: the proxy mesh has no clear mirror plane")
-        lifted = lifted.mirrored(plane)
+        return lifted.mirrored(plane)
+
     if cfg.mask_source == "features" or (cfg.mask_source == "auto" and has_features):
         from edit.feature_maps import FeatureMapRenderer
         from edit.semantic_masks import SemanticMaskConfig, SemanticMasks
@@ -550,8 +554,8 @@ def editable_masker(run: RunDir, setup: TextureSetup, cfg, device, geometry=None
         mask_cfg = SemanticMaskConfig(spatial=cfg.mask_spatial)
         masks = SemanticMasks(feats, painted, mask_cfg, object_mask=on_object, points=points)
         # view K's surface, painted or not, and its mirror image: the template's (not a
-        # hybrid's edited shape)
-        seen = lifted if geometry is None else None
+        # hybrid's edited shape: there the semantic masks alone decide)
+        seen = painting() if geometry is None and (cfg.keep_seen or cfg.symmetric) else None
 
         def semantic(view: ViewSamples) -> torch.Tensor:
             feats, on_obj, points = renderer.maps(view.camera)
@@ -565,7 +569,7 @@ def editable_masker(run: RunDir, setup: TextureSetup, cfg, device, geometry=None
             return editable
 
         return semantic, "features"
-    return lifted.editable, "lifted"
+    return painting().editable, "lifted"
 
 
 # ---- training -----------------------------------------------------------------------------
