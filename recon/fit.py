@@ -164,6 +164,13 @@ class FitConfig(LoopOptions):
         "(0: off)",
         low=0.0,
     )
+    grid_decay: float = option(
+        0.0,
+        "weight of Zip-NeRF's normalised weight decay on the hash table (the sum over levels "
+        "of each level's mean squared feature): pulls entries few rays constrain towards 0, "
+        "against view-dependent speckle (0: off)",
+        low=0.0,
+    )
     sh_degree: int = option(
         4,
         "spherical-harmonics degree of the view direction fed to the colour (1: colour does "
@@ -185,6 +192,13 @@ class FitConfig(LoopOptions):
         "or runs without recon_report.json; templeSparseRing +2.0 dB)",
         low=0.0,
         high=0.9,
+    )
+    refine_rounds: int = option(
+        1,
+        "refinements of the proxy: after --refine-proxy x k of the steps for k = 1..N, each "
+        "fused from the field trained in the last one's band (the rounds must end before the "
+        "last step)",
+        low=1,
     )
     refine_views: int = option(
         16, "training views rendered for the proxy refinement (evenly spaced; 0: all)", low=0
@@ -512,16 +526,43 @@ def load_template(run_dir, device: torch.device | None = None) -> tuple[Template
     return field, bg
 
 
+def refinement_steps(cfg: FitConfig) -> list[int]:
+    """The steps after which the proxy is refined: --refine-proxy x k x iterations for k = 1..
+    --refine-rounds (none for the uniform sampler or --refine-proxy 0)."""
+    if cfg.sampler != "band" or cfg.refine_proxy <= 0:
+        return []
+    steps = [round(cfg.iterations * cfg.refine_proxy * k) for k in range(1, cfg.refine_rounds + 1)]
+    if steps[-1] >= cfg.iterations:
+        raise SineError(
+            f"--refine-rounds {cfg.refine_rounds} refinements every {cfg.refine_proxy} of the "
+            "steps do not end before the last step: lower --refine-proxy or --refine-rounds"
+        )
+    return steps
+
+
+def refinements_done(proxy_state: dict | None) -> int:
+    """Rounds of proxy refinement recorded in a fit's checkpointed proxy state (fits saved
+    before rounds were counted recorded only whether one was done)."""
+    state = proxy_state or {}
+    return int(state.get("rounds", 1 if state.get("refined") else 0))
+
+
 def refine_with_field(
-    run: RunDir, cfg: FitConfig, field, sampler, device, progress: bool = True
+    run: RunDir,
+    cfg: FitConfig,
+    field,
+    sampler,
+    device,
+    progress: bool = True,
+    proxy: Path | None = None,
 ) -> tuple:
-    """A proxy fused from the partly trained field's depth (recon.proxy_refine) -> (mesh,
-    JSON-able stats: silhouette IoU before/after, triangles, seconds)."""
+    """A proxy fused from the partly trained field's depth (recon.proxy_refine), the views
+    seen beyond `proxy` (default: the run's proxy_mesh.ply) carving it -> (mesh, JSON-able
+    stats: silhouette IoU before/after, triangles, seconds)."""
     from recon.proxy_refine import RefineConfig, refine_run
 
-    mesh, stats = refine_run(
-        run, field, sampler, RefineConfig(refine_views=cfg.refine_views), device, progress
-    )
+    refine_cfg = RefineConfig(refine_views=cfg.refine_views)
+    mesh, stats = refine_run(run, field, sampler, refine_cfg, device, progress, proxy=proxy)
     plain = {k: v for k, v in stats.items() if isinstance(v, bool | int | float | str)}
     print(
         f"fit: proxy refined from the field's depth: silhouette IoU "
@@ -678,11 +719,11 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     if not train_views:
         raise SineError(f"{run.cameras} has no frame with split 'train'")
     bg_color, bg_learn = background_color(train_views, cfg.background)
-    refine_at = round(cfg.iterations * cfg.refine_proxy) if cfg.sampler == "band" else 0
+    refine_steps = refinement_steps(cfg)
     refined_proxy = trainer.work_dir / "proxy_mesh.ply"
-    proxy_state = {"refined": False}  # + the refinement's stats once done (checkpointed)
-    refined = bool((trainer.saved("proxy") or {}).get("refined"))
-    sampler = make_sampler(cfg, run, refined_proxy if refined else run.proxy_mesh)
+    proxy_state = {"refined": False}  # + rounds and the last refinement's stats (checkpointed)
+    saved_rounds = refinements_done(trainer.saved("proxy"))
+    sampler = make_sampler(cfg, run, refined_proxy if saved_rounds else run.proxy_mesh)
     pool = build_ray_pool(train_views, sampler, device)
 
     torch.manual_seed(cfg.seed)
@@ -796,24 +837,29 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
             scale = 2.0 * cfg.band_width  # distances in band widths
             spread = volume.distortion(out["weights"], out["t"] / scale, out["delta"] / scale)
             terms["distortion"] = cfg.distortion_weight * spread.mean()
+        if cfg.grid_decay > 0:
+            terms["grid_decay"] = cfg.grid_decay * field.grid.level_mean_squares().sum()
         if background.learnable and len(pool.miss_rgb):
             j = torch.randint(len(pool.miss_rgb), (256,), generator=generator).to(device)
             terms["background"] = torch.mean((background()[None] - pool.miss_rgb[j]) ** 2)
         return terms
 
     field.train()
-    if refine_at and not proxy_state["refined"]:
-        first_leg = refine_at if stop_at is None else min(stop_at, refine_at)
-        trainer.run(step, first_leg)
+    for refine_at in refine_steps[refinements_done(proxy_state) :]:
+        leg_end = refine_at if stop_at is None else min(stop_at, refine_at)
+        trainer.run(step, leg_end)
         if trainer.step < refine_at:  # stopped early on purpose
             return {"step": trainer.step}
-        mesh, stats = refine_with_field(run, cfg, field, sampler, device, trainer.progress)
+        current = refined_proxy if proxy_state["refined"] else run.proxy_mesh
+        mesh, stats = refine_with_field(
+            run, cfg, field, sampler, device, trainer.progress, proxy=current
+        )
         write_mesh(refined_proxy, mesh)
         sampler = make_sampler(cfg, run, refined_proxy)
         pool = build_ray_pool(train_views, sampler, device)
         selector = RaySelector(pool, cfg.error_sampling, generator)
         trainer.state["ray_errors"] = pool.errors
-        proxy_state.update(refined=True, **stats)
+        proxy_state.update(stats, refined=True, rounds=refinements_done(proxy_state) + 1)
         trainer.checkpoint()  # the refined proxy and the rays cast against it go together
         field.train()
     if not trainer.run(step, stop_at):  # stopped early on purpose

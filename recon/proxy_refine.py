@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -346,9 +347,11 @@ def refine_run(
     cfg: RefineConfig | None = None,
     device: torch.device | None = None,
     progress: bool = True,
+    proxy: Path | None = None,
 ):
     """`refine_proxy` on a run: its training views (masks when every one has a mask), its
-    proxy_mesh.ply and proxy settings -> (mesh, stats). Writes nothing."""
+    proxy (`proxy`, default proxy_mesh.ply) and proxy settings -> (mesh, stats). Writes
+    nothing."""
     import open3d as o3d
 
     from render.io import read_mask
@@ -363,9 +366,10 @@ def refine_run(
             c if m.shape == (c.height, c.width) else c.resized(m.shape[1], m.shape[0])
             for c, m in zip(cams, masks, strict=True)
         ]
-    if not run.proxy_mesh.is_file():
-        raise SineError(f"{run.proxy_mesh} not found; run `sine recon` first")
-    old = o3d.io.read_triangle_mesh(str(run.proxy_mesh))
+    proxy = proxy or run.proxy_mesh
+    if not proxy.is_file():
+        raise SineError(f"{proxy} not found; run `sine recon` first")
+    old = o3d.io.read_triangle_mesh(str(proxy))
     params = run_proxy_params(run)
     return refine_proxy(
         field, sampler, cams, masks, params, old, cfg, device=device, progress=progress
