@@ -164,13 +164,6 @@ class FitConfig(LoopOptions):
         "(0: off)",
         low=0.0,
     )
-    grid_decay: float = option(
-        0.0,
-        "weight of Zip-NeRF's normalised weight decay on the hash table (the sum over levels "
-        "of each level's mean squared feature): pulls entries few rays constrain towards 0, "
-        "against view-dependent speckle (0: off)",
-        low=0.0,
-    )
     sh_degree: int = option(
         4,
         "spherical-harmonics degree of the view direction fed to the colour (1: colour does "
@@ -837,8 +830,6 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
             scale = 2.0 * cfg.band_width  # distances in band widths
             spread = volume.distortion(out["weights"], out["t"] / scale, out["delta"] / scale)
             terms["distortion"] = cfg.distortion_weight * spread.mean()
-        if cfg.grid_decay > 0:
-            terms["grid_decay"] = cfg.grid_decay * field.grid.level_mean_squares().sum()
         if background.learnable and len(pool.miss_rgb):
             j = torch.randint(len(pool.miss_rgb), (256,), generator=generator).to(device)
             terms["background"] = torch.mean((background()[None] - pool.miss_rgb[j]) ** 2)

@@ -196,16 +196,6 @@ class HashGrid(nn.Module):
         self.n_dense = sum(dense)  # dense levels are the first ones (resolution grows)
         self.register_buffer("_dense", torch.tensor(dense, dtype=torch.uint8), False)
 
-    def level_mean_squares(self) -> torch.Tensor:
-        """Each level's mean squared table entry [L] (Zip-NeRF's normalised weight decay)."""
-        sizes, offsets = self.level_sizes, self.level_offsets
-        return torch.stack(
-            [
-                self.table[o : o + s].square().mean()
-                for o, s in zip(offsets[:-1], sizes, strict=True)
-            ]
-        )
-
     def _native_args(self) -> tuple[int, int, int, int]:
         """(res, offsets, dense pointers, log2_table) for the C++ kernels."""
         for buf in (self._res_int, self._offsets, self._dense):
