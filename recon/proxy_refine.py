@@ -106,7 +106,8 @@ def ray_depths(
     """Rays [R, 3] -> {"opacity" [R], "expected" [R] (ray distance, normalised by the opacity),
     "level" [R] (distance where the accumulated opacity reaches `level`, inf where it never
     does)}, through `sampler` as `render.renderer.render_rays` samples (importance pass
-    included), without gradients.
+    included), without gradients. `field.density(points)` when the field has it (no colour is
+    computed), else `field(points, dirs)["sigma"]`.
 
     The level crossing is interpolated inside the sample's bin (weight spread evenly over
     [t - delta/2, t + delta/2], exact for midpoint samples in their bins). A soft density (a
@@ -129,9 +130,14 @@ def ray_depths(
         sub, o, d = hits[idx], origins[idx], dirs[idx]
         t, delta = sampler.sample(sub)  # [r, S]
 
+        density = getattr(field, "density", None)  # sigma alone: no colour head
+
         def weights(t, delta):
             pts = o[:, None, :] + d[:, None, :] * t[..., None]  # [r, S, 3]
-            sigma = field(pts.reshape(-1, 3), d.repeat_interleave(t.shape[1], 0))["sigma"]
+            if density is not None:
+                sigma = density(pts.reshape(-1, 3))
+            else:
+                sigma = field(pts.reshape(-1, 3), d.repeat_interleave(t.shape[1], 0))["sigma"]
             return volume.render_weights(sigma.view(t.shape).float(), t, delta=delta)
 
         if getattr(sampler, "n_importance", 0):

@@ -348,7 +348,7 @@ def test_refine_proxy_mid_fit_replaces_the_band_and_resumes_exactly(tmp_path):
 def test_refinement_steps_every_fraction_of_the_fit_and_rounds_of_older_fits():
     from recon.fit import refinement_steps, refinements_done
 
-    assert refinement_steps(FitConfig(iterations=1500, refine_proxy=0.3)) == [450]
+    assert refinement_steps(FitConfig(iterations=1500, refine_proxy=0.3, refine_rounds=1)) == [450]
     two = FitConfig(iterations=1500, refine_proxy=0.3, refine_rounds=2)
     assert refinement_steps(two) == [450, 900]
     assert refinement_steps(FitConfig(iterations=1500, refine_proxy=0.0, refine_rounds=2)) == []
@@ -395,17 +395,31 @@ def test_capture_background_without_masks_is_a_clear_error(tmp_path):
 
 
 def test_the_proxy_is_refined_by_default_only_when_it_was_estimated(tmp_path):
-    from recon.fit import DEFAULT_REFINE_AT, resolve_preset
+    """Hull + stereo proxies are refined every 20 % of the steps, four times; proxies from
+    the dataset's depth or an unknown source are not; an explicit fraction refines once."""
+    from recon.fit import (
+        DEFAULT_REFINE_AT,
+        DEFAULT_REFINE_ROUNDS,
+        refinement_steps,
+        resolve_preset,
+    )
     from render.io import write_json
+
+    def refine(cfg: FitConfig) -> tuple[float, int]:
+        resolved = resolve_preset(cfg, run)
+        return resolved.refine_proxy, resolved.refine_rounds
 
     run = RunDir(tmp_path / "run")
     run.root.mkdir()
-    assert resolve_preset(FitConfig(), run).refine_proxy == 0.0  # no report: nothing known
-    for source, expected in (("dataset", 0.0), ("visual_hull+stereo", DEFAULT_REFINE_AT)):
+    assert refine(FitConfig()) == (0.0, 1)  # no report: nothing known
+    estimated = (DEFAULT_REFINE_AT, DEFAULT_REFINE_ROUNDS)
+    for source, expected in (("dataset", (0.0, 1)), ("visual_hull+stereo", estimated)):
         write_json(run.recon_report, {"depth_source": source})
-        assert resolve_preset(FitConfig(), run).refine_proxy == expected
-    assert resolve_preset(FitConfig(refine_proxy=0.5), run).refine_proxy == 0.5
-    assert resolve_preset(FitConfig(refine_proxy=0.0), run).refine_proxy == 0.0
+        assert refine(FitConfig()) == expected
+    assert refinement_steps(resolve_preset(FitConfig(), run)) == [300, 600, 900, 1200]
+    assert refine(FitConfig(refine_proxy=0.5)) == (0.5, 1)  # an explicit fraction: once
+    assert refine(FitConfig(refine_proxy=0.0)) == (0.0, 1)
+    assert refine(FitConfig(refine_rounds=2)) == (DEFAULT_REFINE_AT, 2)
 
 
 def test_the_masks_edge_is_box_filtered_by_default_only_when_the_capture_brought_its_masks(
