@@ -191,8 +191,8 @@ class FitConfig(LoopOptions):
         None,
         "refinements of the proxy: after --refine-proxy x k of the steps for k = 1..N, each "
         "fused from the field trained in the last one's band, so the band follows the surface "
-        "the field finds (the rounds must end before the last step; None: 4 when --refine-proxy "
-        "is chosen by the run, else 1)",
+        "the field finds (rounds at or after the last step are left out; None: 4 when "
+        "--refine-proxy is chosen by the run, else 1)",
         low=1,
     )
     refine_views: int = option(
@@ -527,16 +527,13 @@ def load_template(run_dir, device: torch.device | None = None) -> tuple[Template
 
 def refinement_steps(cfg: FitConfig) -> list[int]:
     """The steps after which the proxy is refined: --refine-proxy x k x iterations for k = 1..
-    --refine-rounds (none for the uniform sampler or --refine-proxy 0)."""
+    --refine-rounds, those at step 0 or at / after the last step left out (none for the
+    uniform sampler or --refine-proxy 0)."""
     if cfg.sampler != "band" or cfg.refine_proxy <= 0:
         return []
-    steps = [round(cfg.iterations * cfg.refine_proxy * k) for k in range(1, cfg.refine_rounds + 1)]
-    if steps[-1] >= cfg.iterations:
-        raise SineError(
-            f"--refine-rounds {cfg.refine_rounds} refinements every {cfg.refine_proxy} of the "
-            "steps do not end before the last step: lower --refine-proxy or --refine-rounds"
-        )
-    return steps
+    rounds = range(1, cfg.refine_rounds + 1)
+    steps = {round(cfg.iterations * cfg.refine_proxy * k) for k in rounds}
+    return sorted(s for s in steps if 0 < s < cfg.iterations)
 
 
 def refinements_done(proxy_state: dict | None) -> int:

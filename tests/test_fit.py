@@ -346,14 +346,17 @@ def test_refine_proxy_mid_fit_replaces_the_band_and_resumes_exactly(tmp_path):
 
 
 def test_refinement_steps_every_fraction_of_the_fit_and_rounds_of_older_fits():
+    """Refinements every --refine-proxy of the steps, --refine-rounds times, inside the fit;
+    a checkpoint of a fit from before rounds were counted counts one when it refined."""
     from recon.fit import refinement_steps, refinements_done
 
     assert refinement_steps(FitConfig(iterations=1500, refine_proxy=0.3, refine_rounds=1)) == [450]
     two = FitConfig(iterations=1500, refine_proxy=0.3, refine_rounds=2)
     assert refinement_steps(two) == [450, 900]
     assert refinement_steps(FitConfig(iterations=1500, refine_proxy=0.0, refine_rounds=2)) == []
-    with pytest.raises(SineError, match="refine-rounds"):
-        refinement_steps(FitConfig(iterations=100, refine_proxy=0.5, refine_rounds=2))
+    # rounds at / after the last step or at step 0 (a short fit) are left out
+    assert refinement_steps(FitConfig(iterations=100, refine_proxy=0.5, refine_rounds=2)) == [50]
+    assert refinement_steps(FitConfig(iterations=2, refine_proxy=0.2, refine_rounds=4)) == [1]
     assert refinements_done(None) == 0
     assert refinements_done({"refined": True, "silhouette_iou_after": 0.9}) == 1  # older fits
     assert refinements_done({"refined": True, "rounds": 2}) == 2
