@@ -717,7 +717,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     bg_color, bg_learn = background_color(train_views, cfg.background)
     refine_steps = refinement_steps(cfg)
     refined_proxy = trainer.work_dir / "proxy_mesh.ply"
-    proxy_state = {"refined": False}  # + rounds and the last refinement's stats (checkpointed)
+    proxy_state = {"refined": False}  # + rounds, the last round's stats, IoU by round (saved)
     saved_rounds = refinements_done(trainer.saved("proxy"))
     sampler = make_sampler(cfg, run, refined_proxy if saved_rounds else run.proxy_mesh)
     pool = build_ray_pool(train_views, sampler, device)
@@ -853,6 +853,9 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         pool = build_ray_pool(train_views, sampler, device)
         selector = RaySelector(pool, cfg.error_sampling, generator)
         trainer.state["ray_errors"] = pool.errors
+        if "silhouette_iou_after" in stats:  # with masks: the IoU before round 1, after each
+            history = proxy_state.get("silhouette_iou_rounds", [stats["silhouette_iou_before"]])
+            stats["silhouette_iou_rounds"] = [*history, stats["silhouette_iou_after"]]
         proxy_state.update(stats, refined=True, rounds=refinements_done(proxy_state) + 1)
         trainer.checkpoint()  # the refined proxy and the rays cast against it go together
         field.train()

@@ -330,7 +330,9 @@ def test_refine_proxy_mid_fit_replaces_the_band_and_resumes_exactly(tmp_path):
     metrics = fit_template(straight.root, cfg, progress=False)
     refined = metrics["proxy_refined"]
     assert refined["refined"] and refined["rounds"] == 2
-    assert refined["silhouette_iou_after"] >= refined["silhouette_iou_before"]
+    ious = refined["silhouette_iou_rounds"]  # the proxy's before round 1, after each round
+    assert len(ious) == 3 and ious[1] > ious[0] and ious[2] > ious[0]
+    assert (ious[1], ious[2]) == (refined["silhouette_iou_before"], refined["silhouette_iou_after"])
     assert template_proxy(straight) == straight.template / "proxy_mesh.ply"
     radii = np.linalg.norm(
         np.asarray(o3d.io.read_triangle_mesh(str(template_proxy(straight))).vertices), axis=1
