@@ -42,22 +42,29 @@ def _cv_K(cam: Camera) -> np.ndarray:
 
 
 def neighbours(cameras: list[Camera], i: int, params: StereoParams) -> list[int]:
-    """Up to two partners of view i: the nearest viewing direction on each side (camera x)."""
+    """Up to two partners of view i: the nearest viewing direction on each side.
+
+    The sides are those of the line through view i's centre, in its image plane, towards its
+    nearest partner: left and right on an upright ring, up and down on a ring shot with the
+    camera rolled by 90 degrees.
+    """
     ci = cameras[i]
     axis_i = ci.camera_to_world[:3, 2]
-    x_i = ci.camera_to_world[:3, 0]
-    best: dict[int, tuple[float, int]] = {}
+    image_plane = ci.camera_to_world[:3, :2]  # [3, 2]: camera x and y in the world
+    candidates = []  # (angle, j, offset of j's centre in i's image plane [2])
     for j, cj in enumerate(cameras):
         if j == i:
             continue
         cos = float(np.clip(axis_i @ cj.camera_to_world[:3, 2], -1, 1))
-        angle = np.degrees(np.arccos(cos))
-        if not params.min_angle_deg <= angle <= params.max_angle_deg:
-            continue
-        side = int(np.sign((cj.center - ci.center) @ x_i))
-        if side not in best or angle < best[side][0]:
-            best[side] = (angle, j)
-    return [j for _, j in sorted(best.values())]
+        angle = float(np.degrees(np.arccos(cos)))
+        if params.min_angle_deg <= angle <= params.max_angle_deg:
+            candidates.append((angle, j, (cj.center - ci.center) @ image_plane))
+    if not candidates:
+        return []
+    candidates.sort(key=lambda c: c[0])
+    _, nearest, direction = candidates[0]
+    opposite = [j for _, j, offset in candidates[1:] if offset @ direction < 0]
+    return [nearest, *opposite[:1]]
 
 
 def _gray(image: np.ndarray) -> np.ndarray:
@@ -90,33 +97,41 @@ def pair_depth(
     # no CALIB_ZERO_DISPARITY: each rectified image keeps its own principal point, so a converging
     # pair (both cameras look at the object) sees it near the same place: small disparities.
     R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(Ka, zero, Kb, zero, size, R, T, flags=0, alpha=-1)
-    if abs(P2[1, 3]) > abs(P2[0, 3]):
-        return np.zeros((h, w), np.float32)  # vertical pair: not handled (ring neighbours are not)
-    f_rect = float(P1[0, 0])
-    baseline = float(-P2[0, 3] / P2[0, 0])  # > 0: b is to the right of a (rectified x)
+    # a pair displaced mostly along the image's y (a ring shot with the camera rolled, portrait
+    # photos) is rectified vertically: its images are transposed for SGBM, which searches rows.
+    vertical = abs(P2[1, 3]) > abs(P2[0, 3])
+    ax = 1 if vertical else 0  # the rectified axis along which disparities lie
+    span = h if vertical else w  # image length along that axis
+    f_rect = float(P1[ax, ax])
+    baseline = float(-P2[ax, 3] / P2[ax, ax])  # > 0: b lies towards +x (+y) of a, rectified
     flip = baseline < 0  # mirror both images so that a is the left image for SGBM
     baseline = abs(baseline)
     # SGBM disparity d = f B / z + offset (x_a - x_b = f B / z + (cx_a - cx_b), mirrored: negated)
-    offset = float(P1[0, 2] - P2[0, 2]) * (-1.0 if flip else 1.0)
+    offset = float(P1[ax, 2] - P2[ax, 2]) * (-1.0 if flip else 1.0)
     if not (np.isfinite(f_rect) and f_rect > 0 and baseline > 0):
         return np.zeros((h, w), np.float32)
-    # disparity range from the depth range (rectified z ~ camera z for small rectifying rotations;
-    # widened by 20 % against that approximation).
+    # disparity range from the depth range: a point at camera-a depth z on the ray of pixel p
+    # lies at rectified depth z (R1 K^-1 p)_z, extreme at the image's corners; 2 px of margin.
     near, far = z_range
-    d_min = f_rect * baseline / (far * 1.2) + offset
+    corners = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], np.float64)
+    rect_z = corners @ np.linalg.inv(Ka).T @ R1[2]  # [4] rectified z per unit camera-a z
+    if rect_z.min() <= 0:
+        return np.zeros((h, w), np.float32)
+    d_min = f_rect * baseline / (far * rect_z.max()) + offset - 2.0
+    d_max = f_rect * baseline / max(near * rect_z.min(), 1e-9) + offset + 2.0
     # keep SGBM's disparities positive (its sub-pixel step is biased for negative ones, measured
     # ~0.3 px): shift b's rectified principal point by whole pixels.
     shift = max(0, int(np.ceil(2.0 - d_min)))
     P2 = P2.copy()
-    P2[0, 2] += shift if flip else -shift
+    P2[ax, 2] += shift if flip else -shift
     offset += shift
     d_min += shift
-    d_max = f_rect * baseline / max(near * 0.8, 1e-9) + offset
+    d_max += shift
     min_disp = int(np.floor(d_min))
     num = int(np.ceil((d_max - min_disp + 1) / 16.0) * 16)
     if num <= 0 or num > 16 * 16:  # a degenerate pair (or a huge range): no stereo
         return np.zeros((h, w), np.float32)
-    if min_disp + num > w - params.block_size:  # OpenCV's SGBM crashes (segfault) on these
+    if min_disp + num > span - params.block_size:  # OpenCV's SGBM crashes (segfault) on these
         return np.zeros((h, w), np.float32)
     maps_a = cv2.initUndistortRectifyMap(Ka, zero, R1, P1, size, cv2.CV_32FC1)
     maps_b = cv2.initUndistortRectifyMap(Kb, zero, R2, P2, size, cv2.CV_32FC1)
@@ -124,9 +139,12 @@ def pair_depth(
     right = cv2.remap(_gray(image_b), *maps_b, cv2.INTER_LINEAR)
     m_left = cv2.remap(mask_a.astype(np.uint8), *maps_a, cv2.INTER_NEAREST) > 0
     m_right = cv2.remap(mask_b.astype(np.uint8), *maps_b, cv2.INTER_NEAREST) > 0
+    if vertical:
+        left, right, m_left, m_right = (x.T for x in (left, right, m_left, m_right))
     if flip:
-        left, right = left[:, ::-1].copy(), right[:, ::-1].copy()
+        left, right = left[:, ::-1], right[:, ::-1]
         m_left, m_right = m_left[:, ::-1], m_right[:, ::-1]
+    left, right = np.ascontiguousarray(left), np.ascontiguousarray(right)
     bs = params.block_size
     sgbm = cv2.StereoSGBM_create(
         minDisparity=min_disp,
@@ -140,13 +158,13 @@ def pair_depth(
         speckleRange=params.speckle_range,
         mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
     )
-    disp_l = sgbm.compute(left, right).astype(np.float32) / 16.0  # [H, W]
+    disp_l = sgbm.compute(left, right).astype(np.float32) / 16.0  # [H, W] (transposed: [W, H])
     right_matcher = cv2.ximgproc.createRightMatcher(sgbm)
     disp_r = right_matcher.compute(right, left).astype(np.float32) / 16.0  # negative values
     valid = (disp_l > min_disp - 0.5) & (disp_l - offset > 0) & m_left
     rows, cols = np.nonzero(valid)
     xr = np.round(cols - disp_l[rows, cols]).astype(int)
-    ok = (xr >= 0) & (xr < w)
+    ok = (xr >= 0) & (xr < span)
     good = np.zeros_like(valid)
     r2, c2, x2 = rows[ok], cols[ok], xr[ok]
     consistent = np.abs(disp_l[r2, c2] + disp_r[r2, x2]) <= params.lr_max_diff
@@ -155,6 +173,8 @@ def pair_depth(
     disp = np.where(good, disp_l - offset, 0.0)  # f B / z
     if flip:
         disp = disp[:, ::-1]
+    if vertical:
+        disp = disp.T  # [H, W], the rectified image's own layout
 
     # back to view a's pixel grid: original pixel -> rectified pixel (pure rotation + new K).
     grid = np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 2)  # [HW, 2]

@@ -115,6 +115,42 @@ def test_stereo_pair_depth_recovers_a_textured_plane():
     assert abs(np.median(rel2)) < 0.02 and np.median(np.abs(rel2)) < 0.025
 
 
+def test_stereo_pair_depth_recovers_a_textured_plane_from_a_vertical_pair():
+    """Cameras displaced along the image's y (a ring shot with the camera rolled): the pair is
+    rectified vertically and its images transposed for SGBM; both orders give the plane."""
+    rng = np.random.default_rng(1)
+    texture = cv2.GaussianBlur(rng.random((256, 256)).astype(np.float32), (0, 0), 1.5)
+    texture = (texture - texture.min()) / (texture.max() - texture.min())
+    cams = []
+    for y in (-0.15, 0.15):
+        c2w = look_at(np.array([0.0, y, 2.0]), np.array([0.0, 0.0, 0.0]), up=(0.0, 1.0, 0.0))
+        cams.append(Camera(160, 120, 150.0, 150.0, 80.0, 60.0, c2w))
+    images = [_plane_view(c, texture, 0.0, 2.0) for c in cams]
+    masks = [np.ones((120, 160), bool)] * 2
+    for a, b in ((0, 1), (1, 0)):
+        z = pair_depth(cams[a], cams[b], images[a], images[b], masks[a], masks[b], (1.8, 2.3))
+        truth = sphere_free_plane_depth(cams[a])
+        ok = z > 0
+        assert ok.mean() > 0.4
+        rel = (z[ok] - truth[ok]) / truth[ok]
+        assert abs(np.median(rel)) < 0.02 and np.median(np.abs(rel)) < 0.025
+        assert np.percentile(np.abs(rel), 90) < 0.04
+
+
+def test_stereo_neighbours_lie_on_both_sides_of_a_rolled_ring():
+    """Views on a ring, each camera rolled by 90 degrees (the ring runs along the images' y):
+    every view gets its two ring neighbours, one on each side."""
+    cams = []
+    for k in range(12):
+        a = 2 * np.pi * k / 12
+        eye = np.array([3.0 * np.cos(a), 3.0 * np.sin(a), 1.0])
+        c2w = look_at(eye, np.zeros(3), up=(0.0, 0.0, 1.0))
+        c2w[:3, :2] = np.stack([c2w[:3, 1], -c2w[:3, 0]], 1)  # roll: x <- y, y <- -x
+        cams.append(Camera(64, 48, 60.0, 60.0, 32.0, 24.0, c2w))
+    for i in range(12):
+        assert sorted(neighbours(cams, i, StereoParams())) == sorted([(i - 1) % 12, (i + 1) % 12])
+
+
 def sphere_free_plane_depth(cam: Camera) -> np.ndarray:
     """Camera-z depth of the plane z = 0 (world) in `cam`."""
     origins, dirs = cam.rays()
