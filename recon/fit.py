@@ -63,6 +63,8 @@ PRESETS: dict[str, dict[str, int]] = {
 
 DEFAULT_REFINE_AT = 0.2  # refine an estimated proxy after every 20 % of the steps,
 DEFAULT_REFINE_ROUNDS = 4  # four times (templeSparseRing 19.8 -> 21.1 dB against once at 30 %)
+START_BAND = 3.0  # the band before the first refinement, in final band widths, where the
+# proxy is the visual hull alone (bench/RESULTS.md "The band narrowed round by round")
 EDGE_SUPERSAMPLE = 2  # rays per side on the masks' edge pixels when the masks are the capture's
 FALLBACK_MAX_RESOLUTION = 512  # --max-resolution without views to match it to
 
@@ -156,6 +158,17 @@ class FitConfig(LoopOptions):
     )
     importance_samples: int = option(128, "importance samples (uniform sampler only)", low=0)
     band_width: float = option(0.04, "band half-width d and proxy inflation, in run units", low=0.0)
+    band_width_start: float | None = option(
+        None,
+        "band half-width before the first proxy refinement (--refine-proxy), narrowed by the "
+        "same factor with each round to --band-width after the last: an estimated proxy "
+        "misses the surface by more than the final band where no stereo reached (the visual "
+        "hull is only an outer bound), and each refined proxy is closer (None: when the proxy "
+        "is refined, --band-width x (1 + 2 x the fraction of its pixels the recon's stereo did "
+        "not measure): 3 x on the visual hull alone, 1 x on dataset depth; ignored without "
+        "refinement)",
+        low=0.0,
+    )
     uniform_coarse: int = option(64, "stratified coarse samples (uniform sampler)", low=1)
     mask_weight: float = option(0.1, "weight of the opacity-vs-mask BCE loss (0: off)", low=0.0)
     distortion_weight: float = option(
@@ -261,9 +274,21 @@ class FitConfig(LoopOptions):
     )
 
 
+def start_band_factor(report: dict) -> float:
+    """How many final band widths the band starts with before the first proxy refinement:
+    START_BAND where the recon's depth was the visual hull alone (an outer bound: the surface
+    may lie deep inside), 1 where every pixel's depth was measured (stereo, the dataset's),
+    linear in the fraction between (recon_report.json's `stereo_pixel_fraction`)."""
+    if report.get("depth_source") == "dataset":
+        return 1.0
+    measured = float(report.get("stereo_pixel_fraction", 0.0))
+    return 1.0 + (START_BAND - 1.0) * (1.0 - min(max(measured, 0.0), 1.0))
+
+
 def resolve_preset(cfg: FitConfig, run: RunDir | None = None) -> FitConfig:
     """`cfg` with the options left at None taken from its preset (and, for `refine_proxy`,
     from how the run's proxy was made: recon_report.json's depth_source; for
+    `band_width_start`, from how much of it stereo measured: `start_band_factor`; for
     `train_supersample` and `supersample_pixels`, from where its masks came from:
     `masks_from_capture`; for `max_resolution`, from the training cameras:
     `pixel_resolution`)."""
@@ -282,6 +307,9 @@ def resolve_preset(cfg: FitConfig, run: RunDir | None = None) -> FitConfig:
             chosen["refine_rounds"] = DEFAULT_REFINE_ROUNDS if estimated else 1
     elif cfg.refine_rounds is None:
         chosen["refine_rounds"] = 1
+    if cfg.band_width_start is None:
+        refined = chosen.get("refine_proxy", cfg.refine_proxy) > 0
+        chosen["band_width_start"] = cfg.band_width * (start_band_factor(report) if refined else 1)
     if cfg.train_supersample is None:
         exact = masks_from_capture(report)
         chosen["train_supersample"] = EDGE_SUPERSAMPLE if exact else 1
@@ -473,8 +501,9 @@ def template_proxy(run: RunDir) -> Path:
     return refined if refined.is_file() else run.proxy_mesh
 
 
-def make_sampler(cfg: FitConfig, run: RunDir, proxy: Path | None = None):
-    """The fit's ray sampler around `proxy` (default: `template_proxy(run)`)."""
+def make_sampler(cfg: FitConfig, run: RunDir, proxy: Path | None = None, band: float | None = None):
+    """The fit's ray sampler around `proxy` (default: `template_proxy(run)`), its band
+    half-width `band` (default: --band-width)."""
     if cfg.sampler == "uniform":
         return UniformSampler(cfg.uniform_coarse, cfg.importance_samples)
     import open3d as o3d
@@ -484,7 +513,9 @@ def make_sampler(cfg: FitConfig, run: RunDir, proxy: Path | None = None):
     if len(mesh.triangles) == 0:
         raise SineError(f"{proxy} has no triangles; re-run `sine recon`")
     return BandSampler(
-        ProxyRaycaster(mesh, inflate=cfg.band_width), cfg.band_samples, cfg.coarse_samples
+        ProxyRaycaster(mesh, inflate=cfg.band_width if band is None else band),
+        cfg.band_samples,
+        cfg.coarse_samples,
     )
 
 
@@ -534,6 +565,16 @@ def refinement_steps(cfg: FitConfig) -> list[int]:
     rounds = range(1, cfg.refine_rounds + 1)
     steps = {round(cfg.iterations * cfg.refine_proxy * k) for k in rounds}
     return sorted(s for s in steps if 0 < s < cfg.iterations)
+
+
+def band_widths(cfg: FitConfig) -> list[float]:
+    """The band half-width before the first proxy refinement and after each
+    (`refinement_steps`): from --band-width-start to --band-width by a constant factor."""
+    n = len(refinement_steps(cfg))
+    start = cfg.band_width_start
+    if n == 0 or start is None or start <= 0:
+        return [cfg.band_width] * (n + 1)
+    return [start * (cfg.band_width / start) ** (k / n) for k in range(n + 1)]
 
 
 def refinements_done(proxy_state: dict | None) -> int:
@@ -652,7 +693,7 @@ def evaluate(
 # ---- training ---------------------------------------------------------------------------------
 # Options added after fits were recorded whose default is not what those fits did: a run
 # recorded without them counts as having had these values (so it is fitted again, not reused).
-RECORDED_BEFORE = {"average_window": 0.0, "refine_rounds": 1}
+RECORDED_BEFORE = {"average_window": 0.0, "refine_rounds": 1, "band_width_start": 0.04}
 
 # Settings that do not change the result: a checkpoint made with other values still resumes.
 _RUNTIME_KEYS = RUNTIME_KEYS + (
@@ -719,7 +760,10 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     refined_proxy = trainer.work_dir / "proxy_mesh.ply"
     proxy_state = {"refined": False}  # + rounds, the last round's stats, IoU by round (saved)
     saved_rounds = refinements_done(trainer.saved("proxy"))
-    sampler = make_sampler(cfg, run, refined_proxy if saved_rounds else run.proxy_mesh)
+    bands = band_widths(cfg)
+    sampler = make_sampler(
+        cfg, run, refined_proxy if saved_rounds else run.proxy_mesh, bands[saved_rounds]
+    )
     pool = build_ray_pool(train_views, sampler, device)
 
     torch.manual_seed(cfg.seed)
@@ -849,7 +893,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
             run, cfg, field, sampler, device, trainer.progress, proxy=current
         )
         write_mesh(refined_proxy, mesh)
-        sampler = make_sampler(cfg, run, refined_proxy)
+        sampler = make_sampler(cfg, run, refined_proxy, bands[refinements_done(proxy_state) + 1])
         pool = build_ray_pool(train_views, sampler, device)
         selector = RaySelector(pool, cfg.error_sampling, generator)
         trainer.state["ray_errors"] = pool.errors

@@ -364,6 +364,34 @@ def test_refinement_steps_every_fraction_of_the_fit_and_rounds_of_older_fits():
     assert refinements_done({"refined": True, "rounds": 2}) == 2
 
 
+def test_the_band_narrows_by_one_factor_per_refinement_round(tmp_path):
+    """Before the first refinement the band is --band-width-start wide, after the last
+    --band-width, a constant factor between rounds; without refinement it is --band-width.
+    By default it starts wider when the proxy is refined: 3 x on the visual hull alone, less
+    the more of the proxy's pixels stereo measured, 1 x on dataset depth."""
+    from recon.fit import START_BAND, band_widths, resolve_preset
+    from render.io import write_json
+
+    four = FitConfig(iterations=1500, refine_proxy=0.2, refine_rounds=4, band_width_start=0.12)
+    factor = (1 / 3) ** (1 / 4)
+    assert band_widths(four) == pytest.approx([0.12 * factor**k for k in range(5)])
+    assert band_widths(four)[-1] == pytest.approx(0.04)
+    once = FitConfig(iterations=100, refine_proxy=0.5, refine_rounds=1, band_width_start=0.2)
+    assert band_widths(once) == pytest.approx([0.2, 0.04])
+    assert band_widths(FitConfig(refine_proxy=0.0, band_width_start=0.2)) == [0.04]
+    run = RunDir(tmp_path / "run")
+    run.root.mkdir()
+    write_json(run.recon_report, {"depth_source": "visual_hull"})
+    assert resolve_preset(FitConfig(), run).band_width_start == pytest.approx(START_BAND * 0.04)
+    assert resolve_preset(FitConfig(band_width_start=0.05), run).band_width_start == 0.05
+    report = {"depth_source": "visual_hull+stereo", "stereo_pixel_fraction": 0.75}
+    write_json(run.recon_report, report)  # a quarter of the pixels on the hull alone
+    assert resolve_preset(FitConfig(), run).band_width_start == pytest.approx(0.04 * 1.5)
+    assert resolve_preset(FitConfig(refine_proxy=0.0), run).band_width_start == 0.04
+    write_json(run.recon_report, {"depth_source": "dataset"})
+    assert resolve_preset(FitConfig(), run).band_width_start == 0.04
+
+
 def test_capture_background_composites_rays_outside_the_masks_over_their_own_pixels(tmp_path):
     """A backdrop of random colours (no single colour explains it): with --background capture
     the rays outside the masks are composited over their own pixels, so the field learns no
