@@ -50,7 +50,7 @@ def run(args) -> int:
         "mask_coverage_mean",
         "depth_source",
         "proxy_triangles",
-        "proxy_watertight",
+        "proxy_closed",
         "silhouette_iou_mean",
         "verdict",
     )

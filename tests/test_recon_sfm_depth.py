@@ -166,6 +166,7 @@ def test_hull_closing_makes_the_proxy_watertight_where_no_view_looks():
     depths = sphere_depths(cams, np.zeros(3), r)  # seen from above only: the bottom is unseen
     open_mesh = clean_mesh(fuse_tsdf(cams, depths, voxel_size=1 / 64), target_triangles=5000)
     assert not mesh_stats(open_mesh)["proxy_watertight"]
+    assert not mesh_stats(open_mesh)["proxy_closed"]
     hull = o3d.geometry.TriangleMesh.create_sphere(radius=r + 0.02, resolution=40)
     from recon.depth import raycast_views
 
@@ -178,7 +179,7 @@ def test_hull_closing_makes_the_proxy_watertight_where_no_view_looks():
         ),
         target_triangles=5000,
     )
-    assert mesh_stats(closed)["proxy_watertight"]
+    assert mesh_stats(closed)["proxy_watertight"] and mesh_stats(closed)["proxy_closed"]
     radii = np.linalg.norm(np.asarray(closed.vertices), axis=1)
     top = np.asarray(closed.vertices)[:, 2] > 0.3  # seen by the real views: the real sphere
     assert np.abs(radii[top] - r).max() < 2 / 64
