@@ -8,6 +8,8 @@ camera-z depth on the ORIGINAL view's pixel grid (each original pixel samples th
 disparity at its rectified position; nearest, so depth never mixes across edges).
 Rectification keeps separate principal points (no CALIB_ZERO_DISPARITY): with a long lens the
 zero-disparity layout would push a converging pair's object out of the overlap.
+A pair displaced along the image's y (cameras rolled on their ring, portrait photos) is
+rectified vertically; its images are transposed for SGBM, which searches along rows.
 Pixel convention: ours puts pixel centres at +0.5, OpenCV's at integers (K shifted by 0.5).
 """
 
