@@ -165,11 +165,14 @@ def hull_stereo_depth(
             unknown_total += int(unknown.sum())
             continue
         z_min, z_max = float(z.min()), float(z.max()) + max_behind
-        if unknown.any():  # the object may go on beyond the hull: search further
-            span = z_max - z_min
-            z_min, z_max = max(z_min - span, 0.2 * z_min), z_max + span
         stereo = stereo_depth(cameras, images, masks, i, (z_min, z_max), params, agree=front_tol)
         fused, use = fuse_hull_stereo(hull, stereo, front_tol, max_behind)
+        if unknown.any():  # the object may go on beyond the hull: search further, there only
+            # (a separate pass: the wider disparity range may be more than SGBM takes, which
+            # must not cost the hull's pixels their stereo)
+            span = z_max - z_min
+            wide = (max(z_min - span, 0.2 * z_min), z_max + span)
+            stereo = stereo_depth(cameras, images, masks, i, wide, params, agree=front_tol)
         fill = unknown & (stereo > 0)
         fused[fill] = stereo[fill]
         out.append(fused)
