@@ -64,7 +64,7 @@ PRESETS: dict[str, dict[str, int]] = {
 DEFAULT_REFINE_AT = 0.2  # refine an estimated proxy after every 20 % of the steps,
 DEFAULT_REFINE_ROUNDS = 4  # four times (templeSparseRing 19.8 -> 21.1 dB against once at 30 %)
 START_BAND = 3.0  # the band before the first refinement, in final band widths, where the
-# proxy is the visual hull alone (bench/RESULTS.md "The band narrowed round by round")
+# proxy is the visual hull alone (bench/RESULTS.md "Stereo on rolled rings ...")
 EDGE_SUPERSAMPLE = 2  # rays per side on the masks' edge pixels when the masks are the capture's
 FALLBACK_MAX_RESOLUTION = 512  # --max-resolution without views to match it to
 
