@@ -261,6 +261,36 @@ def test_stereo_fills_where_the_hull_is_open():
     assert np.median(rel) < 0.03
 
 
+def test_a_few_open_hull_pixels_do_not_cost_the_view_its_stereo(monkeypatch):
+    """The hull's pixels take stereo searched in the hull's own depth range; only the open
+    pixels are searched in the wider range, in a second pass, so a range SGBM refuses (a long
+    lens: > 256 disparities; stereo answers nothing) costs only those pixels."""
+    import recon.depth as depth
+    from render.cameras import Camera, look_at
+
+    cams = [
+        Camera(40, 30, 60.0, 60.0, 20.0, 15.0, look_at(np.array([x, 0.0, 2.0]), np.zeros(3)))
+        for x in (-0.1, 0.1)
+    ]
+    hull = [np.full((30, 40), 2.0, np.float32) for _ in cams]
+    hull[0][:2, :2] = 0.0  # four open pixels in view 0
+    masks = [np.ones((30, 40), bool)] * 2
+    ranges = []
+
+    def fake_stereo(cameras, images, masks, i, z_range, params=None, agree=0.01):
+        ranges.append((i, z_range))
+        narrow = z_range[1] - z_range[0] < 0.2  # the hull's own: 2.0 .. 2.0 + max_behind
+        return np.full((30, 40), 2.03 if narrow else 0.0, np.float32)  # wide: SGBM refused
+
+    monkeypatch.setattr(depth, "stereo_depth", fake_stereo)
+    images = [np.zeros((30, 40, 3), np.float32)] * 2
+    fused, stats = depth.hull_stereo_depth(cams, images, masks, hull, 0.02, max_behind=0.1)
+    assert stats["stereo_pixel_fraction"] == 1.0  # every hull pixel of both views
+    assert np.all(fused[0][2:] == np.float32(2.03)) and np.all(fused[0][:2, :2] == 0.0)
+    assert [i for i, _ in ranges] == [0, 0, 1]  # view 0: the hull's range, then the wide one
+    assert ranges[1][1][0] < ranges[0][1][0] and ranges[1][1][1] > ranges[0][1][1]
+
+
 def test_patchwork_capture_with_its_poses_stops_in_the_poses_stage(figurine, tmp_path):
     from recon.ingest import IngestConfig
     from recon.pipeline import ReconConfig, run_recon
