@@ -165,8 +165,8 @@ class FitConfig(LoopOptions):
         "misses the surface by more than the final band where no stereo reached (the visual "
         "hull is only an outer bound), and each refined proxy is closer (None: when the proxy "
         "is refined, --band-width x (1 + 2 x the fraction of its pixels the recon's stereo did "
-        "not measure): 3 x on the visual hull alone, 1 x on dataset depth; ignored without "
-        "refinement)",
+        "not measure): 3 x on the visual hull alone, 1 x on dataset depth; 0: --band-width "
+        "throughout; ignored without refinement)",
         low=0.0,
     )
     uniform_coarse: int = option(64, "stratified coarse samples (uniform sampler)", low=1)
@@ -893,14 +893,15 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
             run, cfg, field, sampler, device, trainer.progress, proxy=current
         )
         write_mesh(refined_proxy, mesh)
-        sampler = make_sampler(cfg, run, refined_proxy, bands[refinements_done(proxy_state) + 1])
+        rounds = refinements_done(proxy_state) + 1  # with this one
+        sampler = make_sampler(cfg, run, refined_proxy, bands[rounds])
         pool = build_ray_pool(train_views, sampler, device)
         selector = RaySelector(pool, cfg.error_sampling, generator)
         trainer.state["ray_errors"] = pool.errors
         if "silhouette_iou_after" in stats:  # with masks: the IoU before round 1, after each
             history = proxy_state.get("silhouette_iou_rounds", [stats["silhouette_iou_before"]])
             stats["silhouette_iou_rounds"] = [*history, stats["silhouette_iou_after"]]
-        proxy_state.update(stats, refined=True, rounds=refinements_done(proxy_state) + 1)
+        proxy_state.update(stats, refined=True, rounds=rounds)
         trainer.checkpoint()  # the refined proxy and the rays cast against it go together
         field.train()
     if not trainer.run(step, stop_at):  # stopped early on purpose

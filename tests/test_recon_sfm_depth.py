@@ -85,19 +85,24 @@ def _plane_view(cam: Camera, texture: np.ndarray, z_plane: float, size: float) -
     return np.repeat(gray[..., None], 3, axis=2)
 
 
-def test_stereo_pair_depth_recovers_a_textured_plane():
-    rng = np.random.default_rng(0)
+def _plane_pair(offsets, seed: int):
+    """Two cameras 2 units above the textured plane z = 0 at the given (x, y) offsets, looking
+    down (image y along world y): cameras, their images, full masks."""
+    rng = np.random.default_rng(seed)
     texture = cv2.GaussianBlur(rng.random((256, 256)).astype(np.float32), (0, 0), 1.5)
     texture = (texture - texture.min()) / (texture.max() - texture.min())
     cams = []
-    for x in (-0.15, 0.15):  # two cameras 0.3 apart, 2 units above the plane z = 0
-        c2w = look_at(np.array([x, 0.0, 2.0]), np.array([0.0, 0.0, 0.0]), up=(0.0, 1.0, 0.0))
+    for x, y in offsets:
+        c2w = look_at(np.array([x, y, 2.0]), np.array([0.0, 0.0, 0.0]), up=(0.0, 1.0, 0.0))
         cams.append(Camera(160, 120, 150.0, 150.0, 80.0, 60.0, c2w))
     images = [_plane_view(c, texture, 0.0, 2.0) for c in cams]
-    masks = [np.ones((120, 160), bool)] * 2
-    truth = sphere_free_plane_depth(cams[0])
-    assert neighbours(cams, 0, StereoParams(min_angle_deg=1.0)) == [1]
-    z = pair_depth(cams[0], cams[1], images[0], images[1], masks[0], masks[1], (1.8, 2.3))
+    return cams, images, [np.ones((120, 160), bool)] * 2
+
+
+def _assert_pair_finds_the_plane(cams, images, masks, a: int, b: int) -> None:
+    """View a's stereo depth from the pair (a, b) covers > 40 % of it, near the plane."""
+    z = pair_depth(cams[a], cams[b], images[a], images[b], masks[a], masks[b], (1.8, 2.3))
+    truth = sphere_free_plane_depth(cams[a])
     ok = z > 0
     assert ok.mean() > 0.4
     # SGBM's sub-pixel steps are 1/16 px (0.28 % of depth here). Measured: median -1.3 % (a
@@ -106,35 +111,22 @@ def test_stereo_pair_depth_recovers_a_textured_plane():
     rel = (z[ok] - truth[ok]) / truth[ok]
     assert abs(np.median(rel)) < 0.02
     assert np.median(np.abs(rel)) < 0.025 and np.percentile(np.abs(rel), 90) < 0.04
+
+
+def test_stereo_pair_depth_recovers_a_textured_plane():
+    cams, images, masks = _plane_pair([(-0.15, 0.0), (0.15, 0.0)], seed=0)  # 0.3 apart along x
+    assert neighbours(cams, 0, StereoParams(min_angle_deg=1.0)) == [1]
+    _assert_pair_finds_the_plane(cams, images, masks, 0, 1)
     # the pair the other way round (b to the left of a) works as well (mirrored SGBM input)
-    z2 = pair_depth(cams[1], cams[0], images[1], images[0], masks[1], masks[0], (1.8, 2.3))
-    truth2 = sphere_free_plane_depth(cams[1])
-    ok2 = z2 > 0
-    assert ok2.mean() > 0.4
-    rel2 = (z2[ok2] - truth2[ok2]) / truth2[ok2]
-    assert abs(np.median(rel2)) < 0.02 and np.median(np.abs(rel2)) < 0.025
+    _assert_pair_finds_the_plane(cams, images, masks, 1, 0)
 
 
 def test_stereo_pair_depth_recovers_a_textured_plane_from_a_vertical_pair():
     """Cameras displaced along the image's y (a ring shot with the camera rolled): the pair is
     rectified vertically and its images transposed for SGBM; both orders give the plane."""
-    rng = np.random.default_rng(1)
-    texture = cv2.GaussianBlur(rng.random((256, 256)).astype(np.float32), (0, 0), 1.5)
-    texture = (texture - texture.min()) / (texture.max() - texture.min())
-    cams = []
-    for y in (-0.15, 0.15):
-        c2w = look_at(np.array([0.0, y, 2.0]), np.array([0.0, 0.0, 0.0]), up=(0.0, 1.0, 0.0))
-        cams.append(Camera(160, 120, 150.0, 150.0, 80.0, 60.0, c2w))
-    images = [_plane_view(c, texture, 0.0, 2.0) for c in cams]
-    masks = [np.ones((120, 160), bool)] * 2
-    for a, b in ((0, 1), (1, 0)):
-        z = pair_depth(cams[a], cams[b], images[a], images[b], masks[a], masks[b], (1.8, 2.3))
-        truth = sphere_free_plane_depth(cams[a])
-        ok = z > 0
-        assert ok.mean() > 0.4
-        rel = (z[ok] - truth[ok]) / truth[ok]
-        assert abs(np.median(rel)) < 0.02 and np.median(np.abs(rel)) < 0.025
-        assert np.percentile(np.abs(rel), 90) < 0.04
+    cams, images, masks = _plane_pair([(0.0, -0.15), (0.0, 0.15)], seed=1)
+    _assert_pair_finds_the_plane(cams, images, masks, 0, 1)
+    _assert_pair_finds_the_plane(cams, images, masks, 1, 0)
 
 
 def test_stereo_neighbours_lie_on_both_sides_of_a_rolled_ring():
