@@ -24,6 +24,7 @@ with one message when too little of the masked pixels gets depth.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
@@ -63,6 +64,17 @@ class HullMesh:
             "hull_open_fraction": round(self.open_fraction, 4),
             "hull_complete_views": self.complete_views,
         }
+
+
+def read_hull(path) -> HullMesh | None:
+    """The visual hull a recon saved (visual_hull.npz), or None where there is none."""
+    if not Path(path).is_file():
+        return None
+    data = np.load(path)
+    faces = data["faces"]
+    open_faces = data["open_faces"] if "open_faces" in data else np.zeros(len(faces), bool)
+    complete = int(data["complete_views"]) if "complete_views" in data else 0
+    return HullMesh(data["vertices"], faces, float(data["voxel"]), open_faces, complete)
 
 
 def visual_hull(

@@ -64,7 +64,7 @@ PRESETS: dict[str, dict[str, int]] = {
 DEFAULT_REFINE_AT = 0.2  # refine an estimated proxy after every 20 % of the steps,
 DEFAULT_REFINE_ROUNDS = 4  # four times (templeSparseRing 19.8 -> 21.1 dB against once at 30 %)
 START_BAND = 3.0  # the band before the first refinement, in final band widths, where the
-# proxy is the visual hull alone (bench/RESULTS.md "Stereo on rolled rings ...")
+# recon's depth was the visual hull's alone (bench/RESULTS.md "The start band by proxy vertex")
 EDGE_SUPERSAMPLE = 2  # rays per side on the masks' edge pixels when the masks are the capture's
 FALLBACK_MAX_RESOLUTION = 512  # --max-resolution without views to match it to
 
@@ -160,13 +160,14 @@ class FitConfig(LoopOptions):
     band_width: float = option(0.04, "band half-width d and proxy inflation, in run units", low=0.0)
     band_width_start: float | None = option(
         None,
-        "band half-width before the first proxy refinement (--refine-proxy), narrowed by the "
-        "same factor with each round to --band-width after the last: an estimated proxy "
-        "misses the surface by more than the final band where no stereo reached (the visual "
-        "hull is only an outer bound), and each refined proxy is closer (None: when the proxy "
-        "is refined, --band-width x (1 + 2 x the fraction of its pixels the recon's stereo did "
-        "not measure): 3 x on the visual hull alone, 1 x on dataset depth; 0: --band-width "
-        "throughout; ignored without refinement)",
+        "band half-width before the first proxy refinement (--refine-proxy) where the recon's "
+        "depth was the visual hull's alone in the views that see the proxy there (the hull "
+        "is only an outer bound: the surface may lie well inside); --band-width where stereo "
+        "measured it, linear in the share of the views between (this wide everywhere without "
+        "the run's visual_hull.npz). Narrowed by the same factor with each round to "
+        "--band-width after the last (None: 3 x "
+        "--band-width when the proxy is refined; 0: --band-width throughout; ignored without "
+        "refinement)",
         low=0.0,
     )
     uniform_coarse: int = option(64, "stratified coarse samples (uniform sampler)", low=1)
@@ -274,21 +275,9 @@ class FitConfig(LoopOptions):
     )
 
 
-def start_band_factor(report: dict) -> float:
-    """How many final band widths the band starts with before the first proxy refinement:
-    START_BAND where the recon's depth was the visual hull alone (an outer bound: the surface
-    may lie deep inside), 1 where every pixel's depth was measured (stereo, the dataset's),
-    linear in the fraction between (recon_report.json's `stereo_pixel_fraction`)."""
-    if report.get("depth_source") == "dataset":
-        return 1.0
-    measured = float(report.get("stereo_pixel_fraction", 0.0))
-    return 1.0 + (START_BAND - 1.0) * (1.0 - min(max(measured, 0.0), 1.0))
-
-
 def resolve_preset(cfg: FitConfig, run: RunDir | None = None) -> FitConfig:
     """`cfg` with the options left at None taken from its preset (and, for `refine_proxy`,
     from how the run's proxy was made: recon_report.json's depth_source; for
-    `band_width_start`, from how much of it stereo measured: `start_band_factor`; for
     `train_supersample` and `supersample_pixels`, from where its masks came from:
     `masks_from_capture`; for `max_resolution`, from the training cameras:
     `pixel_resolution`)."""
@@ -309,7 +298,7 @@ def resolve_preset(cfg: FitConfig, run: RunDir | None = None) -> FitConfig:
         chosen["refine_rounds"] = 1
     if cfg.band_width_start is None:
         refined = chosen.get("refine_proxy", cfg.refine_proxy) > 0
-        chosen["band_width_start"] = cfg.band_width * (start_band_factor(report) if refined else 1)
+        chosen["band_width_start"] = cfg.band_width * (START_BAND if refined else 1)
     if cfg.train_supersample is None:
         exact = masks_from_capture(report)
         chosen["train_supersample"] = EDGE_SUPERSAMPLE if exact else 1
@@ -501,9 +490,29 @@ def template_proxy(run: RunDir) -> Path:
     return refined if refined.is_file() else run.proxy_mesh
 
 
-def make_sampler(cfg: FitConfig, run: RunDir, proxy: Path | None = None, band: float | None = None):
-    """The fit's ray sampler around `proxy` (default: `template_proxy(run)`), its band
-    half-width `band` (default: --band-width)."""
+def band_at_round(cfg: FitConfig, run: RunDir, mesh, done: int):
+    """The band half-width around a proxy (`mesh`: vertices [V, 3], faces [F, 3]) after
+    `done` refinement rounds: --band-width, or while rounds remain, one width per vertex [V]:
+    `band_widths`' width for the round where the recon's depth was the visual hull's alone
+    in every view that sees the vertex, --band-width where stereo measured it in all of
+    them, linear in the share between (`recon.proxy_band`), each narrowing geometrically."""
+    from recon.proxy_band import unmeasured_share
+
+    widest = band_widths(cfg)[done]
+    if widest <= cfg.band_width or (cfg.band_width_start or 0.0) <= cfg.band_width:
+        return widest
+    share = unmeasured_share(run, *mesh)
+    if share is None:
+        return widest
+    start = cfg.band_width + (cfg.band_width_start - cfg.band_width) * share  # [V]
+    left = math.log(widest / cfg.band_width) / math.log(cfg.band_width_start / cfg.band_width)
+    return cfg.band_width * (start / cfg.band_width) ** left  # [V]
+
+
+def make_sampler(cfg: FitConfig, run: RunDir, proxy: Path | None = None, done: int | None = None):
+    """The fit's ray sampler around `proxy` (default: `template_proxy(run)`): the band
+    --band-width wide, or, during the fit, the band after `done` refinement rounds
+    (`band_at_round`)."""
     if cfg.sampler == "uniform":
         return UniformSampler(cfg.uniform_coarse, cfg.importance_samples)
     import open3d as o3d
@@ -512,11 +521,11 @@ def make_sampler(cfg: FitConfig, run: RunDir, proxy: Path | None = None, band: f
     mesh = o3d.io.read_triangle_mesh(str(proxy))
     if len(mesh.triangles) == 0:
         raise SineError(f"{proxy} has no triangles; re-run `sine recon`")
-    return BandSampler(
-        ProxyRaycaster(mesh, inflate=cfg.band_width if band is None else band),
-        cfg.band_samples,
-        cfg.coarse_samples,
-    )
+    width = cfg.band_width
+    if done is not None:
+        arrays = (np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+        width = band_at_round(cfg, run, arrays, done)
+    return BandSampler(ProxyRaycaster(mesh, inflate=width), cfg.band_samples, cfg.coarse_samples)
 
 
 def field_config(cfg: FitConfig, n_views: int = 0) -> TemplateFieldConfig:
@@ -760,9 +769,8 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     refined_proxy = trainer.work_dir / "proxy_mesh.ply"
     proxy_state = {"refined": False}  # + rounds, the last round's stats, IoU by round (saved)
     saved_rounds = refinements_done(trainer.saved("proxy"))
-    bands = band_widths(cfg)
     sampler = make_sampler(
-        cfg, run, refined_proxy if saved_rounds else run.proxy_mesh, bands[saved_rounds]
+        cfg, run, refined_proxy if saved_rounds else run.proxy_mesh, saved_rounds
     )
     pool = build_ray_pool(train_views, sampler, device)
 
@@ -894,7 +902,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         )
         write_mesh(refined_proxy, mesh)
         rounds = refinements_done(proxy_state) + 1  # with this one
-        sampler = make_sampler(cfg, run, refined_proxy, bands[rounds])
+        sampler = make_sampler(cfg, run, refined_proxy, rounds)
         pool = build_ray_pool(train_views, sampler, device)
         selector = RaySelector(pool, cfg.error_sampling, generator)
         trainer.state["ray_errors"] = pool.errors

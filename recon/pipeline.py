@@ -689,15 +689,12 @@ class Pipeline:
     def _hull(self, cams, masks, fresh: bool = False):
         """The visual hull (recon.depth.HullMesh), cached in visual_hull.npz (the depth stage
         refreshes it)."""
-        from recon.depth import HullMesh, visual_hull
+        from recon.depth import read_hull, visual_hull
 
         path = self.run.root / "visual_hull.npz"
-        if path.is_file() and not fresh:
-            data = np.load(path)
-            faces = data["faces"]
-            open_faces = data["open_faces"] if "open_faces" in data else np.zeros(len(faces), bool)
-            complete = int(data["complete_views"]) if "complete_views" in data else 0
-            return HullMesh(data["vertices"], faces, float(data["voxel"]), open_faces, complete)
+        saved = None if fresh else read_hull(path)
+        if saved is not None:
+            return saved
         hull = visual_hull(cams, masks, self.cfg.hull_resolution, self.cfg.hull_tolerance)
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:

@@ -37,13 +37,15 @@ class RayHits:
     far: torch.Tensor  # [R] exit from the bounding sphere (near where missed)
     t_exit: torch.Tensor | None = None  # [R] where a ray that misses the proxy leaves the
     # inflated copy again (inf elsewhere); None: unknown (the band is then 2d long)
+    width: torch.Tensor | None = None  # [R] the band half-width d at the ray's hit, where the
+    # proxy's widths vary by vertex; None: one width for every ray
 
     @property
     def hit(self) -> torch.Tensor:  # [R] bool: the ray needs the field
         return torch.isfinite(self.t_inflated) | torch.isfinite(self.t_hit)
 
     def _fields(self) -> tuple:
-        return (self.t_hit, self.t_inflated, self.near, self.far, self.t_exit)
+        return (self.t_hit, self.t_inflated, self.near, self.far, self.t_exit, self.width)
 
     def __getitem__(self, idx) -> RayHits:
         return RayHits(*(None if v is None else v[idx] for v in self._fields()))
@@ -87,12 +89,20 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 
 class ProxyRaycaster:
-    """Ray casting against a proxy mesh and its copy inflated by `inflate` (run units)."""
+    """Ray casting against a proxy mesh and its copy inflated by `inflate` (run units): one
+    width, or one per vertex [V] (the band half-width then varies over the proxy, and each
+    ray's hit carries its own, interpolated over the hit triangle: `RayHits.width`)."""
 
-    def __init__(self, mesh, inflate: float = 0.04, radius: float = 1.0):
-        self.inflate = float(inflate)
+    def __init__(self, mesh, inflate: float | np.ndarray = 0.04, radius: float = 1.0):
         self.radius = float(radius)
         vertices, self.triangles = mesh_arrays(mesh)
+        self.vertex_widths = None  # [V] float32, or None: `inflate` everywhere
+        if np.ndim(inflate):
+            self.vertex_widths = np.ascontiguousarray(inflate, np.float32).reshape(-1)
+            if len(self.vertex_widths) != len(vertices):
+                raise ValueError("one inflation per proxy vertex is needed")
+            inflate = float(self.vertex_widths.max(initial=0.0))
+        self.inflate = float(inflate)  # the widest
         self.update_vertices(vertices)
 
     def update_vertices(self, vertices: np.ndarray) -> None:
@@ -101,17 +111,29 @@ class ProxyRaycaster:
         self._scene = MeshRaycaster((self.vertices, self.triangles))
         self._inflated = None
         if self.inflate > 0:
-            inflated = self.vertices + self.inflate * vertex_normals(self.vertices, self.triangles)
+            widths = self.inflate if self.vertex_widths is None else self.vertex_widths[:, None]
+            inflated = self.vertices + widths * vertex_normals(self.vertices, self.triangles)
             self._inflated = MeshRaycaster((inflated, self.triangles))
+
+    def _widths_at(self, hits) -> torch.Tensor:
+        """MeshHits [R] -> the vertex widths interpolated at each hit [R] (0 where missed)."""
+        corners = self.vertex_widths[self.triangles[np.maximum(hits.triangle, 0)]]  # [R, 3]
+        width = (corners * hits.barycentrics).sum(1)
+        return torch.from_numpy(np.where(hits.hit, width, 0.0).astype(np.float32))
 
     def cast(self, origins: torch.Tensor, dirs: torch.Tensor) -> RayHits:
         """origins [R, 3], unit dirs [R, 3] -> RayHits (on the rays' device)."""
         o, d = rays_numpy(origins, dirs)
-        t_hit = torch.from_numpy(self._scene.cast(o, d).t)
+        first = self._scene.cast(o, d)
+        t_hit = torch.from_numpy(first.t)
         t_exit = torch.full_like(t_hit, float("inf"))
+        width = None if self.vertex_widths is None else self._widths_at(first)
         if self._inflated is not None:
-            t_inf = torch.from_numpy(self._inflated.cast(o, d).t)
+            outer = self._inflated.cast(o, d)
+            t_inf = torch.from_numpy(outer.t)
             passing = torch.isfinite(t_inf) & ~torch.isfinite(t_hit)  # by the silhouette
+            if width is not None:  # by the silhouette: the width where it enters the copy
+                width = torch.where(passing, self._widths_at(outer), width)
             if passing.any():  # leave the inflated copy: its next hit along the ray
                 sel = passing.numpy()
                 start = t_inf[passing].numpy() + 1e-5
@@ -121,7 +143,8 @@ class ProxyRaycaster:
             t_inf = t_hit.clone()
         device = origins.device
         near, far, _ = sphere_interval(origins, dirs, self.radius)
-        return RayHits(t_hit.to(device), t_inf.to(device), near, far, t_exit.to(device))
+        width = None if width is None else width.to(device)
+        return RayHits(t_hit.to(device), t_inf.to(device), near, far, t_exit.to(device), width)
 
 
 def _stratified(lo: torch.Tensor, hi: torch.Tensor, n: int) -> torch.Tensor:
@@ -148,7 +171,8 @@ class BandSampler:
     raycaster: ProxyRaycaster
     n_band: int = 16  # bins in [t_hit - d, t_hit + d]
     n_coarse: int = 4  # bins over the whole ray-in-sphere interval
-    half_width: float | None = None  # d; None: the raycaster's inflation
+    half_width: float | None = None  # d; None: the raycaster's inflation (per ray where it
+    # varies by vertex)
     n_importance: int = 0  # (band sampling needs no importance pass)
 
     @property
@@ -165,7 +189,7 @@ class BandSampler:
     def band(self, hits: RayHits) -> tuple[torch.Tensor, torch.Tensor]:
         """Band [lo, hi] per ray ([R], [R]) from hits. Not clipped to the sphere interval: a
         warped proxy may reach beyond the sphere (an edit that makes the object taller)."""
-        d = self.d
+        d = self.d if hits.width is None or self.half_width is not None else hits.width
         direct = torch.isfinite(hits.t_hit)
         t0 = torch.where(direct, hits.t_hit - d, hits.t_inflated)
         t0 = torch.where(torch.isfinite(t0), t0, hits.near)

@@ -315,7 +315,8 @@ def test_refine_proxy_mid_fit_replaces_the_band_and_resumes_exactly(tmp_path):
     """A proxy 20 % too large is refined from the field after 30 % and again after 60 % of
     the steps (accuracy: tests/test_proxy_refine.py, on analytic fields): the template keeps
     the refined proxy (closer to the true sphere of radius 0.5), later stages find it, and a
-    fit interrupted between the two refinements resumes to the same parameters."""
+    fit interrupted between the two refinements resumes to the same parameters (the band's
+    width by proxy vertex too: the recon's visual hull meets the proxy at the equator)."""
     import open3d as o3d
 
     from recon.fit import template_proxy
@@ -323,6 +324,8 @@ def test_refine_proxy_mid_fit_replaces_the_band_and_resumes_exactly(tmp_path):
     base = _make_run(tmp_path / "base")
     big = o3d.geometry.TriangleMesh.create_sphere(0.6, 40)
     o3d.io.write_triangle_mesh(str(base.proxy_mesh), big)
+    hull = np.asarray(big.vertices) * [1.0, 1.0, 1.1]  # the proxy on it at the equator only
+    np.savez(base.root / "visual_hull.npz", vertices=hull, faces=big.triangles, voxel=0.02)
     cfg = FitConfig(
         iterations=60, refine_proxy=0.3, refine_rounds=2, refine_views=6, **{**TINY, "lr_mlp": 2e-2}
     )
@@ -367,8 +370,7 @@ def test_refinement_steps_every_fraction_of_the_fit_and_rounds_of_older_fits():
 def test_the_band_narrows_by_one_factor_per_refinement_round(tmp_path):
     """Before the first refinement the band is --band-width-start wide, after the last
     --band-width, a constant factor between rounds; without refinement it is --band-width.
-    By default it starts wider when the proxy is refined: 3 x on the visual hull alone, less
-    the more of the proxy's pixels stereo measured, 1 x on dataset depth."""
+    By default it starts 3 x wider when the proxy is refined, 1 x on dataset depth."""
     from recon.fit import START_BAND, band_widths, resolve_preset
     from render.io import write_json
 
@@ -381,15 +383,60 @@ def test_the_band_narrows_by_one_factor_per_refinement_round(tmp_path):
     assert band_widths(FitConfig(refine_proxy=0.0, band_width_start=0.2)) == [0.04]
     run = RunDir(tmp_path / "run")
     run.root.mkdir()
-    write_json(run.recon_report, {"depth_source": "visual_hull"})
+    write_json(run.recon_report, {"depth_source": "visual_hull+stereo"})
     assert resolve_preset(FitConfig(), run).band_width_start == pytest.approx(START_BAND * 0.04)
     assert resolve_preset(FitConfig(band_width_start=0.05), run).band_width_start == 0.05
-    report = {"depth_source": "visual_hull+stereo", "stereo_pixel_fraction": 0.75}
-    write_json(run.recon_report, report)  # a quarter of the pixels on the hull alone
-    assert resolve_preset(FitConfig(), run).band_width_start == pytest.approx(0.04 * 1.5)
     assert resolve_preset(FitConfig(refine_proxy=0.0), run).band_width_start == 0.04
     write_json(run.recon_report, {"depth_source": "dataset"})
     assert resolve_preset(FitConfig(), run).band_width_start == 0.04
+
+
+def test_the_start_band_is_wide_only_where_the_recon_had_the_visual_hull_alone(tmp_path):
+    """Per proxy vertex, the share of the views seeing it whose recon depth was the hull's
+    (not replaced by stereo) sets its start band: --band-width-start at 1, --band-width at
+    0, linear between; each vertex narrows geometrically round by round; one width without
+    the hull."""
+    from recon.depth import HullMesh, bounded_depths
+    from recon.fit import band_at_round
+    from recon.proxy_band import unmeasured_share
+    from render.io import write_depth
+
+    run = RunDir(tmp_path / "run")
+    run.depth.mkdir(parents=True)
+    sphere = o3d.geometry.TriangleMesh.create_sphere(0.6, 60)
+    vertices, faces = np.asarray(sphere.vertices), np.asarray(sphere.triangles)
+    np.savez(
+        run.root / "visual_hull.npz",
+        vertices=vertices,
+        faces=faces,
+        voxel=0.02,
+        open_faces=np.zeros(len(faces), bool),
+    )
+    hull = HullMesh(vertices, faces, 0.02, np.zeros(len(faces), bool))
+    cams = []
+    for i in range(4):  # at azimuths 0, 90, 180, 270 degrees
+        a = np.pi / 2 * i
+        eye = np.array([3.0 * np.cos(a), 3.0 * np.sin(a), 0.0])
+        cams.append(Camera(64, 64, 60.0, 60.0, 32, 32, look_at(eye, np.zeros(3)), name=f"v{i}.png"))
+    run.save_cameras(CameraSet(cams))
+    for i, (cam, z) in enumerate(zip(cams, bounded_depths(hull, cams), strict=True)):
+        measured = i < 2  # views 0 and 1: stereo moved every pixel; 2 and 3: the hull's
+        write_depth(run.depth_path(cam.name), np.where(z > 0, z + 0.05, 0) if measured else z)
+    share = unmeasured_share(run, vertices, faces)
+    # equator vertices seen by views 0 + 1 (azimuth 45), 1 + 2 (135), 2 + 3 (225)
+    azimuth = np.degrees(np.arctan2(vertices[:, 1], vertices[:, 0])) % 360
+    equator = np.abs(vertices[:, 2]) < 0.05
+    for centre, expected in ((45, 0.0), (135, 0.5), (225, 1.0)):
+        near = equator & (np.abs(azimuth - centre) < 10)
+        assert near.any() and share[near] == pytest.approx(expected)
+    cfg = FitConfig(iterations=1000, refine_proxy=0.2, refine_rounds=4, band_width_start=0.12)
+    start = 0.04 + 0.08 * share
+    assert band_at_round(cfg, run, (vertices, faces), 0) == pytest.approx(start)
+    halfway = band_at_round(cfg, run, (vertices, faces), 2)
+    assert halfway == pytest.approx(0.04 * (start / 0.04) ** 0.5)
+    assert band_at_round(cfg, run, (vertices, faces), 4) == 0.04
+    (run.root / "visual_hull.npz").unlink()
+    assert band_at_round(cfg, run, (vertices, faces), 0) == pytest.approx(0.12)
 
 
 def test_capture_background_composites_rays_outside_the_masks_over_their_own_pixels(tmp_path):

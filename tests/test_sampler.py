@@ -77,6 +77,25 @@ def test_band_samples_around_sphere_depth_and_misses():
     assert abs((lo[1] + hi[1]).item() / 2 - 3.0) < 5e-3
 
 
+def test_band_width_by_vertex():
+    # widths 0.02 on the sphere's x < 0 half, 0.08 on x > 0: a ray through each half gets its
+    # own band around the hit, and so does a ray passing by the wide side's inflated copy
+    mesh = _sphere(0.5)
+    x = np.asarray(mesh.vertices)[:, 0]
+    widths = np.where(x > 0, 0.08, 0.02)
+    sampler = BandSampler(ProxyRaycaster(mesh, inflate=widths), n_band=8, n_coarse=2)
+    o, d = _rays([-0.3, 0.3, 0.55])
+    hits = sampler.cast(o, d)
+    torch.testing.assert_close(hits.width, torch.tensor([0.02, 0.08, 0.08]))
+    lo, hi = sampler.band(hits)
+    t_hit = 3.0 - np.sqrt(0.5**2 - 0.3**2)  # the sphere's front at x = +-0.3
+    assert lo[:2].tolist() == pytest.approx([t_hit - 0.02, t_hit - 0.08], abs=5e-3)
+    assert hi[:2].tolist() == pytest.approx([t_hit + 0.02, t_hit + 0.08], abs=5e-3)
+    # passing 0.05 outside the sphere: inside the 0.08 copy for 2 sqrt(0.58^2 - 0.55^2)
+    assert (hi[2] - lo[2]).item() == pytest.approx(2 * np.sqrt(0.58**2 - 0.55**2), abs=0.02)
+    assert sampler.d == pytest.approx(0.08)  # the widest: what the inflated copy spans
+
+
 def test_update_vertices_moves_the_hit():
     mesh = _sphere(0.5)
     rc = ProxyRaycaster(mesh, inflate=0.02)
