@@ -165,9 +165,8 @@ class FitConfig(LoopOptions):
         "is only an outer bound: the surface may lie well inside); --band-width where stereo "
         "measured it, linear in the share of the views between (this wide everywhere without "
         "the run's visual_hull.npz). Narrowed by the same factor with each round to "
-        "--band-width after the last (None: 3 x "
-        "--band-width when the proxy is refined; 0: --band-width throughout; ignored without "
-        "refinement)",
+        "--band-width after the last (None: 3 x --band-width when the proxy is refined; 0: "
+        "--band-width throughout; ignored without refinement)",
         low=0.0,
     )
     uniform_coarse: int = option(64, "stratified coarse samples (uniform sampler)", low=1)

@@ -1,7 +1,8 @@
 """Where to sample along rays: proxy-guided band sampling (embree) and the uniform baseline.
 
 - `ProxyRaycaster`: `render.raycast.MeshRaycaster` over the proxy mesh and over a copy inflated
-  by `d` along the vertex normals (so silhouettes are covered). `cast` gives per ray the first
+  by `d` along the vertex normals (so silhouettes are covered); `d` may be one per vertex, each
+  ray's band then takes the widths interpolated where it hits. `cast` gives per ray the first
   hit on both, and the ray's interval inside the bounding sphere. `update_vertices` rebuilds both
   scenes from warped vertices (milliseconds), for the edited space.
 - `BandSampler`: for rays that hit the inflated proxy, `n_band` bins in `[t_hit - d, t_hit + d]`
