@@ -489,29 +489,31 @@ def template_proxy(run: RunDir) -> Path:
     return refined if refined.is_file() else run.proxy_mesh
 
 
-def band_at_round(cfg: FitConfig, run: RunDir, mesh, done: int):
+def band_at_round(cfg: FitConfig, stereo, mesh, done: int):
     """The band half-width around a proxy (`mesh`: vertices [V, 3], faces [F, 3]) after
     `done` refinement rounds: --band-width, or while rounds remain, one width per vertex [V]:
     `band_widths`' width for the round where the recon's depth was the visual hull's alone
     in every view that sees the vertex, --band-width where stereo measured it in all of
-    them, linear in the share between (`recon.proxy_band`), each narrowing geometrically."""
+    them, linear in the share between (`recon.proxy_band`; `stereo`: what its
+    `stereo_pixels` found in the run, None: the round's width everywhere), each narrowing
+    geometrically."""
     from recon.proxy_band import unmeasured_share
 
     widest = band_widths(cfg)[done]
-    if widest <= cfg.band_width or (cfg.band_width_start or 0.0) <= cfg.band_width:
+    if widest <= cfg.band_width or stereo is None:
         return widest
-    share = unmeasured_share(run, *mesh)
-    if share is None:
-        return widest
+    share = unmeasured_share(stereo, *mesh)
     start = cfg.band_width + (cfg.band_width_start - cfg.band_width) * share  # [V]
     left = math.log(widest / cfg.band_width) / math.log(cfg.band_width_start / cfg.band_width)
     return cfg.band_width * (start / cfg.band_width) ** left  # [V]
 
 
-def make_sampler(cfg: FitConfig, run: RunDir, proxy: Path | None = None, done: int | None = None):
+def make_sampler(
+    cfg: FitConfig, run: RunDir, proxy: Path | None = None, done: int | None = None, stereo=None
+):
     """The fit's ray sampler around `proxy` (default: `template_proxy(run)`): the band
     --band-width wide, or, during the fit, the band after `done` refinement rounds
-    (`band_at_round`)."""
+    (`band_at_round`, with `stereo`)."""
     if cfg.sampler == "uniform":
         return UniformSampler(cfg.uniform_coarse, cfg.importance_samples)
     import open3d as o3d
@@ -523,7 +525,7 @@ def make_sampler(cfg: FitConfig, run: RunDir, proxy: Path | None = None, done: i
     width = cfg.band_width
     if done is not None:
         arrays = (np.asarray(mesh.vertices), np.asarray(mesh.triangles))
-        width = band_at_round(cfg, run, arrays, done)
+        width = band_at_round(cfg, stereo, arrays, done)
     return BandSampler(ProxyRaycaster(mesh, inflate=width), cfg.band_samples, cfg.coarse_samples)
 
 
@@ -768,9 +770,13 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     refined_proxy = trainer.work_dir / "proxy_mesh.ply"
     proxy_state = {"refined": False}  # + rounds, the last round's stats, IoU by round (saved)
     saved_rounds = refinements_done(trainer.saved("proxy"))
-    sampler = make_sampler(
-        cfg, run, refined_proxy if saved_rounds else run.proxy_mesh, saved_rounds
-    )
+    stereo = None  # which pixels the recon's stereo measured, for the start band by vertex
+    if cfg.sampler == "band" and band_widths(cfg)[0] > cfg.band_width:
+        from recon.proxy_band import stereo_pixels
+
+        stereo = stereo_pixels(run)
+    start_proxy = refined_proxy if saved_rounds else run.proxy_mesh
+    sampler = make_sampler(cfg, run, start_proxy, saved_rounds, stereo)
     pool = build_ray_pool(train_views, sampler, device)
 
     torch.manual_seed(cfg.seed)
@@ -901,7 +907,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         )
         write_mesh(refined_proxy, mesh)
         rounds = refinements_done(proxy_state) + 1  # with this one
-        sampler = make_sampler(cfg, run, refined_proxy, rounds)
+        sampler = make_sampler(cfg, run, refined_proxy, rounds, stereo)
         pool = build_ray_pool(train_views, sampler, device)
         selector = RaySelector(pool, cfg.error_sampling, generator)
         trainer.state["ray_errors"] = pool.errors

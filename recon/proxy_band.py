@@ -35,15 +35,12 @@ def stereo_pixels(run: RunDir) -> tuple[list, float] | None:
     return out, hull.voxel
 
 
-def unmeasured_share(run: RunDir, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray | None:
-    """Per vertex of a proxy mesh (vertices [V, 3], faces [F, 3]) in [0, 1]: of the views in
-    which it is visible (the proxy's first hit on the ray to it is the vertex itself, to half
-    a hull voxel), the share whose depth at its pixel was the hull's alone; 1 where no view
-    sees it. None without the recon's visual hull."""
-    found = stereo_pixels(run)
-    if found is None:
-        return None
-    views, voxel = found
+def unmeasured_share(stereo: tuple[list, float], vertices: np.ndarray, faces: np.ndarray):
+    """Per vertex of a proxy mesh (vertices [V, 3], faces [F, 3]) in [0, 1] [V]: of the views
+    in which it is visible (the proxy's first hit on the ray to it is the vertex itself, to
+    half a hull voxel), the share whose depth at its pixel was the hull's alone (`stereo`:
+    what `stereo_pixels` found); 1 where no view sees it."""
+    views, voxel = stereo
     caster = MeshRaycaster((vertices, faces))
     seen = np.zeros(len(vertices))
     measured = np.zeros(len(vertices))

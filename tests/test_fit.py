@@ -398,7 +398,7 @@ def test_the_start_band_is_wide_only_where_the_recon_had_the_visual_hull_alone(t
     the hull."""
     from recon.depth import HullMesh, bounded_depths
     from recon.fit import band_at_round
-    from recon.proxy_band import unmeasured_share
+    from recon.proxy_band import stereo_pixels, unmeasured_share
     from render.io import write_depth
 
     run = RunDir(tmp_path / "run")
@@ -422,7 +422,8 @@ def test_the_start_band_is_wide_only_where_the_recon_had_the_visual_hull_alone(t
     for i, (cam, z) in enumerate(zip(cams, bounded_depths(hull, cams), strict=True)):
         measured = i < 2  # views 0 and 1: stereo moved every pixel; 2 and 3: the hull's
         write_depth(run.depth_path(cam.name), np.where(z > 0, z + 0.05, 0) if measured else z)
-    share = unmeasured_share(run, vertices, faces)
+    stereo = stereo_pixels(run)
+    share = unmeasured_share(stereo, vertices, faces)
     # equator vertices seen by views 0 + 1 (azimuth 45), 1 + 2 (135), 2 + 3 (225)
     azimuth = np.degrees(np.arctan2(vertices[:, 1], vertices[:, 0])) % 360
     equator = np.abs(vertices[:, 2]) < 0.05
@@ -431,12 +432,13 @@ def test_the_start_band_is_wide_only_where_the_recon_had_the_visual_hull_alone(t
         assert near.any() and share[near] == pytest.approx(expected)
     cfg = FitConfig(iterations=1000, refine_proxy=0.2, refine_rounds=4, band_width_start=0.12)
     start = 0.04 + 0.08 * share
-    assert band_at_round(cfg, run, (vertices, faces), 0) == pytest.approx(start)
-    halfway = band_at_round(cfg, run, (vertices, faces), 2)
+    assert band_at_round(cfg, stereo, (vertices, faces), 0) == pytest.approx(start)
+    halfway = band_at_round(cfg, stereo, (vertices, faces), 2)
     assert halfway == pytest.approx(0.04 * (start / 0.04) ** 0.5)
-    assert band_at_round(cfg, run, (vertices, faces), 4) == 0.04
+    assert band_at_round(cfg, stereo, (vertices, faces), 4) == 0.04
     (run.root / "visual_hull.npz").unlink()
-    assert band_at_round(cfg, run, (vertices, faces), 0) == pytest.approx(0.12)
+    assert stereo_pixels(run) is None
+    assert band_at_round(cfg, None, (vertices, faces), 0) == pytest.approx(0.12)
 
 
 def test_capture_background_composites_rays_outside_the_masks_over_their_own_pixels(tmp_path):
