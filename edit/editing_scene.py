@@ -236,10 +236,7 @@ class TextureEditScene(EditScene):
         for k in np.linspace(0, len(frames), count, endpoint=False).astype(int):
             cam = frames[k]
             out = self.render_view(cam)
-            uv, z = cam.project(points)
-            col, row = np.floor(uv[:, 0]), np.floor(uv[:, 1])
-            ok = (z > 0) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
-            col, row = np.where(ok, col, 0).astype(int), np.where(ok, row, 0).astype(int)
+            row, col, ok, z = cam.pixels_of(points)
             seen = ok & (np.abs(out["z"][row, col] - z) < 2 * self.band_width)
             seen &= out["opacity"][row, col] > 0.5
             to_camera = cam.center[None] - points

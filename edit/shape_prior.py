@@ -110,21 +110,17 @@ def bilinear(image: np.ndarray, points: np.ndarray) -> np.ndarray:
 # ---- lifting to 3D ------------------------------------------------------------------------
 def visible_vertices(
     camera: Camera, vertices: np.ndarray, depth: np.ndarray, tol: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Vertices [V, 3] seen by `camera` given the proxy's camera-z map [H, W] (0 = no hit).
 
-    -> (visible [V] bool, pixels [V, 2], camera z [V]).
+    -> (visible [V] bool, in the image [V] bool, pixel row [V], pixel col [V]).
     """
-    uv, z = camera.project(vertices)
-    h, w = depth.shape
-    inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-    visible = np.zeros(len(vertices), bool)
-    idx = np.nonzero(inside)[0]
+    row, col, in_image, z = camera.pixels_of(vertices, depth.shape)
     # the smallest depth around the vertex's pixel (a vertex on an edge touches several pixels)
     surface = ndimage.minimum_filter(np.where(depth > 0, depth, np.inf), size=3)
-    d = surface[uv[idx, 1].astype(int), uv[idx, 0].astype(int)]
-    visible[idx] = np.isfinite(d) & (z[idx] <= d + tol)
-    return visible, uv, z
+    d = surface[row, col]
+    visible = in_image & np.isfinite(d) & (z <= d + tol)
+    return visible, in_image, row, col
 
 
 def lifting_normal(camera: Camera, up: np.ndarray | None) -> np.ndarray:
@@ -191,11 +187,8 @@ def lift_handles(
     visible one. The rest (hidden behind the region, or visible in it with sub-pixel motion: flow
     noise) is free or anchored respectively.
     """
-    visible, uv, z = visible_vertices(camera, vertices, proxy_depth, visibility_tol)
-    h, w = region.shape
-    px = np.clip(uv[:, 0].astype(int), 0, w - 1)
-    py = np.clip(uv[:, 1].astype(int), 0, h - 1)
-    in_image = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    visible, in_image, py, px = visible_vertices(camera, vertices, proxy_depth, visibility_tol)
+    uv, _ = camera.project(vertices)  # [V, 2]
     in_region = in_image & region[py, px]
     ids = np.nonzero(visible & in_region)[0]
     src = uv[ids]

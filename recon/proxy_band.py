@@ -45,11 +45,7 @@ def unmeasured_share(stereo: tuple[list, float], vertices: np.ndarray, faces: np
     seen = np.zeros(len(vertices))
     measured = np.zeros(len(vertices))
     for cam, took_stereo in views:
-        uv, z = cam.project(vertices)  # [V, 2], [V]
-        col = np.floor(uv[:, 0]).astype(np.int64)
-        row = np.floor(uv[:, 1]).astype(np.int64)
-        inside = (z > 0) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
-        col, row = np.where(inside, col, 0), np.where(inside, row, 0)
+        row, col, inside, _ = cam.pixels_of(vertices)  # [V] each
         offset = vertices - cam.center  # [V, 3]
         distance = np.linalg.norm(offset, axis=1)
         dirs = offset / np.maximum(distance, 1e-12)[:, None]

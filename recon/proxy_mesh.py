@@ -213,12 +213,8 @@ def cull_outside_silhouettes(
     outside = np.zeros(len(verts), np.int32)
     for cam, mask in zip(cameras, masks, strict=True):
         m = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-        uv, z = cam.project(verts)
-        col, row = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
-        inside = (z > 0) & (col >= 0) & (col < m.shape[1]) & (row >= 0) & (row < m.shape[0])
-        fg = np.zeros(len(verts), bool)
-        fg[inside] = m[row[inside], col[inside]]
-        outside += (inside & ~fg).astype(np.int32)
+        row, col, inside, _ = cam.pixels_of(verts, m.shape)
+        outside += (inside & ~m[row, col]).astype(np.int32)
     mesh.remove_vertices_by_mask(outside > max_outside)
     return mesh
 

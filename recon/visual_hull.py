@@ -61,15 +61,8 @@ def carve_grid(
     complete = [not touches_border(m) for m in prepared]
     for cam, mask, whole in zip(cameras, prepared, complete, strict=True):
         pts = grid[alive]
-        uv, z = cam.project(pts)
-        h, w = mask.shape
-        sx, sy = w / cam.width, h / cam.height
-        with np.errstate(invalid="ignore"):  # points in the camera plane: uv is nan
-            col = np.floor(uv[:, 0] * sx)
-            row = np.floor(uv[:, 1] * sy)
-        inside = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
-        fg = np.zeros(len(alive), bool)
-        fg[inside] = mask[row[inside].astype(np.int64), col[inside].astype(np.int64)]
+        row, col, inside, _ = cam.pixels_of(pts, mask.shape)
+        fg = inside & mask[row, col]
         judged = np.ones(len(alive), bool) if whole else inside  # complete: outside = empty
         misses[alive[judged & ~fg]] += 1
         seen[alive[judged]] += 1

@@ -91,6 +91,25 @@ class Camera:
             )
         return uv, z
 
+    def pixels_of(
+        self, points: np.ndarray, shape: tuple[int, int] | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The pixel each world point [N, 3] falls in, on an image of `shape` (h, w) covering
+        this camera's view (default: the camera's own size; a mask at half size works too).
+
+        -> (row [N] int64, col [N] int64, inside [N] bool: in front of the camera and within
+        the image; row and col are 0 where not inside, so they index safely, camera z [N]).
+        """
+        h, w = shape if shape is not None else (self.height, self.width)
+        uv, z = self.project(points)
+        with np.errstate(invalid="ignore"):  # points in the camera plane: uv is nan
+            col = np.floor(uv[:, 0] * (w / self.width))
+            row = np.floor(uv[:, 1] * (h / self.height))
+            inside = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        row = np.where(inside, row, 0).astype(np.int64)
+        col = np.where(inside, col, 0).astype(np.int64)
+        return row, col, inside, z
+
     def pixel_grid(self) -> np.ndarray:
         """Centres of all pixels, row-major: [H*W, 2] (u = col + 0.5, v = row + 0.5)."""
         v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64) + 0.5

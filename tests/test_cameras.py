@@ -71,6 +71,27 @@ def test_project_matches_hand_computation():
         np.testing.assert_allclose(x[:2] / x[2], expected_pixel(cam), atol=1e-9)
 
 
+def test_pixels_of_points_on_full_and_half_size_images():
+    # the camera of the test above: (0.2, -0.1, 2) lands at (55.0, 37.0) -> row 37, col 55
+    cam = C.Camera(100, 80, 50.0, 60.0, 50.0, 40.0)
+    points = np.array(
+        [
+            [0.2, -0.1, 2.0],  # inside
+            [0.0, 0.0, -1.0],  # behind the camera
+            [4.0, 0.0, 2.0],  # u = 150: right of the image
+            [0.0, 0.0, 0.0],  # in the camera plane: no pixel at all
+            [-2.0, -1.6, 1.0],  # (u, v) = (-50, -56): left of and above the image
+        ]
+    )
+    row, col, inside, z = cam.pixels_of(points)
+    np.testing.assert_array_equal(inside, [True, False, False, False, False])
+    np.testing.assert_array_equal(row, [37, 0, 0, 0, 0])  # 0 where outside: safe indices
+    np.testing.assert_array_equal(col, [55, 0, 0, 0, 0])
+    np.testing.assert_allclose(z, [2.0, -1.0, 2.0, 0.0, 1.0])
+    row, col, inside, _ = cam.pixels_of(points[:1], shape=(40, 50))  # a half-size mask
+    assert (row[0], col[0], inside[0]) == (18, 27, True)
+
+
 def test_look_at_axes():
     eye, target = np.array([0.0, -3.0, 0.0]), np.zeros(3)
     c2w = C.look_at(eye, target, up=(0, 0, 1))
