@@ -143,6 +143,35 @@ class Compositor(nn.Module):
         return out + (out.clamp(0.0, 1.0) - out).detach()  # clamped, gradients as if not
 
 
+@torch.no_grad()
+def fit_shared_transform(
+    compositor: Compositor,
+    template: torch.Tensor,
+    target: torch.Tensor,
+    gate: torch.Tensor,
+    part: torch.Tensor | None = None,
+    ridge: float = 1e-3,
+) -> torch.Tensor:
+    """Starts the affine head's shared transform (its bias: A, b) at the least-squares colour
+    transform that takes the template's pixels to the target's: I_o [N, 3] -> target [N, 3],
+    g [N] the gate at each pixel, P [N, 3] the part's share of I_o (None: the whole pixel), with
+    I_m = 0 as at the start of an edit (see the module doc: target - I_o = A P + g b, or
+    g (A I_o + b)). `ridge` pulls towards no change where the pixels leave it undetermined (a
+    part of one colour fixes A only along that colour). -> the residual [N, 3] after the fit."""
+    if compositor.kind != "affine":
+        raise ValueError("only the affine head has a shared colour transform")
+    g = gate.reshape(-1, 1)
+    colour = part if part is not None else g * template  # [N, 3]
+    x = torch.cat([colour, g], dim=1).double()  # [N, 4]
+    y = (target - template).double()  # [N, 3]
+    gram = x.T @ x + ridge * len(x) * torch.eye(4, dtype=x.dtype, device=x.device)
+    w = torch.linalg.solve(gram, x.T @ y)  # [4, 3]: y = x w
+    bias = compositor.head.bias
+    bias[:9] = w[:3].T.reshape(9).to(bias)  # A[i, j] = w[j, i]
+    bias[9:] = w[3].to(bias)
+    return (y - x @ w).to(template)
+
+
 def composite_hwc(
     compositor: Compositor | None, template, modification, region=None, part=None
 ) -> torch.Tensor:

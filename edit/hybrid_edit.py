@@ -258,7 +258,7 @@ def _edit(
     geo_editing = geometry.state["editing"]
     phase: dict = {}  # the texture steps, built on the frozen geometric edit when they start
 
-    def texture_phase() -> dict:
+    def texture_phase(fresh: bool) -> dict:  # fresh: not resumed within the texture steps
         if not phase:
             edited = deformed_template(template, freeze(geo_editing), gcfg.band_width)
             try:
@@ -295,13 +295,14 @@ def _edit(
                 setup,
                 device,
                 feature_geometry=edited,
+                fresh=fresh,
             )
             phase.update(setup=setup, step=step, mask_source=mask_source)
         return phase
 
     def step(i: int) -> dict[str, torch.Tensor]:
         if i >= n_geometry:
-            return texture_phase()["step"](i - n_geometry)
+            return texture_phase(i == n_geometry)["step"](i - n_geometry)
         terms = geometry_step(i)
         sum(terms.values()).backward()
         return {k: v.detach() for k, v in terms.items()}
@@ -310,7 +311,7 @@ def _edit(
         return {"step": trainer.step}
 
     # ---- save the result and score the edited view ----
-    tex_setup = texture_phase()["setup"]
+    tex_setup = texture_phase(False)["setup"]
     save_torch(
         work / "edit_field.pt",
         {

@@ -76,6 +76,10 @@ transform acts on the part's share of each pixel's colour (the gate-weighted col
 samples, `edit.compositor`), so a rim pixel's neighbour share stays. The UNet learns at
 half the residual head's rate (`COMPOSITOR_LR`): at the residual head's rate its per-pixel
 part drifts after 300 steps (red streaks on the toycar's edges, bench/RESULTS.md).
+`fit_transform` (aligned case, opt-in): the shared transform starts at the least-squares
+colour transform from view K's template pixels to the target's
+(`edit.compositor.fit_shared_transform`), not at no change (bench/RESULTS.md: it helps only with
+the UNet and F_dT held still, i.e. for a recolour that is one transform over the part).
 
 `--w-plain W` (beyond the paper, off by default): the photometric term on view K's crop also on
 I_o + I_m before the compositor, so F_dT makes the change itself in 3D and the compositor refines
@@ -98,7 +102,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from edit.compositor import HALO, HEADS, Compositor, composite_hwc
+from edit.compositor import HALO, HEADS, Compositor, composite_hwc, fit_shared_transform
 from edit.deferred import DeferredImage, deferred_backward, image_tiles
 from edit.edit_inputs import difference_region, read_region, read_target
 from edit.editing_field import EditingField
@@ -200,6 +204,15 @@ class TextureEditConfig(LoopOptions):
         "seed 0 +0.35 dB, UNet at 5e-3), but it spills over what the semantic masks include "
         "and the user did not paint (spot: unedited 27 dB)",
         low=1e-12,
+    )
+    fit_transform: bool = option(
+        False,
+        "--compositor-head affine, aligned target: the shared colour transform starts at the "
+        "least-squares transform from the template to the target on view K's region instead "
+        "of no change (toycar: 27.02 dB held-out against 28.72 without, as the UNet and F_dT "
+        "then learn view K's remainder in ways that carry badly; the transform alone, with "
+        "--lr-compositor 1e-12 --lr-grid 1e-12 --lr-mlp 1e-12, 29.27: for a recolour that is "
+        "one transform over the part)",
     )
     lr_naive: float = option(1e-3, "naive baseline: learning rate of the colour MLP", low=1e-12)
     lr_final_factor: float = option(
@@ -764,6 +777,7 @@ def _ours(run, cfg, trainer, template, sampler, background, setup: TextureSetup,
         background,
         setup,
         device,
+        fresh=trainer.step == 0,
     )
     return editing, compositor, step, mask_source
 
@@ -818,12 +832,14 @@ def texture_steps(
     setup: TextureSetup,
     device,
     feature_geometry=None,
+    fresh: bool = True,
 ):
     """(step, mask source) of F_dT + compositor, once `Trainer.start` has restored a resumed
     run's state: `template` (frozen field) and `sampler` render the views I_o comes from, `gen`
     is the trainer's generator; step(i) is step i of this training (0..cfg.iterations-1).
     feature_geometry: the scene of `template` and `sampler` when it is not the run's template
-    (a hybrid edit's `deformed_template`): the semantic masks' feature maps are rendered on it."""
+    (a hybrid edit's `deformed_template`): the semantic masks' feature maps are rendered on it.
+    fresh: the compositor has not been trained yet (not resumed): `fit_transform` applies."""
     from edit.dino import load_dino
     from edit.texture_loss import TextureLoss, sliced_wasserstein
 
@@ -891,6 +907,13 @@ def texture_steps(
     if setup.target_rgb is not None:  # kept with the view, so crops carry it along
         target = torch.from_numpy(setup.target_rgb.reshape(-1, 3)).to(device)
         k_view.goal = target
+        fits = cfg.fit_transform and compositor is not None and compositor.kind == "affine"
+        if fresh and fits and k_view.region is not None:
+            px = k_view.editable  # [P] bool
+            part = None if k_view.part_rgb is None else k_view.part_rgb[px]
+            fit_shared_transform(
+                compositor, k_view.template_rgb[px], target[px], k_view.region[px], part
+            )
     region_px = torch.nonzero(k_view.editable)[:, 0].cpu()
     object_px = torch.nonzero(k_view.opacity > 0.5)[:, 0].cpu()
     if len(object_px) == 0:

@@ -176,6 +176,43 @@ def test_affine_head_transforms_only_the_parts_share_of_a_rim_pixel():
     assert (whole - out[:, 0]).abs().max() > 0.03
 
 
+def test_the_shared_transform_starts_at_the_least_squares_fit_to_the_target():
+    """A target made by one colour transform (the channel permutation of a 120-degree hue turn,
+    plus an offset) on the part's pixels: the fit recovers it, and the compositor then renders
+    the target from the template (I_m = 0), rim pixels included (their part's share only)."""
+    from edit.compositor import fit_shared_transform
+
+    gen = torch.Generator().manual_seed(0)
+    perm = torch.tensor([[0.0, 0, 1], [1, 0, 0], [0, 1, 0]])
+    a, b = perm - torch.eye(3), torch.tensor([0.02, -0.01, 0.03])
+    n = 200
+    background = torch.tensor([0.9, 0.9, 0.9])
+    own = torch.rand(n, 3, generator=gen) * 0.8 + 0.1  # the part's colours
+    g = torch.ones(n)
+    g[:40] = torch.rand(40, generator=gen)  # rim pixels: part of each is the background
+    part = g[:, None] * own  # [N, 3] the part's share of I_o
+    template = part + (1 - g[:, None]) * background
+    target = template + part @ a.T + g[:, None] * b
+    comp = Compositor(head="affine")
+    residual = fit_shared_transform(comp, template, target, g, part, ridge=1e-9)
+    assert residual.abs().max() < 1e-5
+    assert torch.allclose(comp.head.bias[:9].reshape(3, 3), a, atol=1e-4)
+    assert torch.allclose(comp.head.bias[9:], b, atol=1e-4)
+
+    def as_image(x, channels=3):  # [N, C] -> [1, C, 1, N]
+        return x.T.reshape(1, channels, 1, n)
+
+    out = comp(as_image(template), torch.zeros(1, 3, 1, n), as_image(g[:, None], 1), as_image(part))
+    assert torch.allclose(out[0, :, 0].T, target.clamp(0, 1), atol=1e-4)
+    # without the part's share: the transform of the whole pixel, weighed by g
+    whole = template + g[:, None] * (template @ a.T + b)
+    comp = Compositor(head="affine")
+    assert fit_shared_transform(comp, template, whole, g, ridge=1e-9).abs().max() < 1e-5
+    assert torch.allclose(comp.head.bias[:9].reshape(3, 3), a, atol=1e-4)
+    with pytest.raises(ValueError, match="affine"):
+        fit_shared_transform(Compositor(), template, target, g)
+
+
 def test_the_parts_share_is_used_by_the_affine_head_with_the_gate_only():
     from edit.texture_edit import uses_part_colour
 
@@ -615,6 +652,34 @@ def test_interrupted_texture_edit_resumes_bit_exactly(texture_run):
         torch.save({**original, "config": json.dumps(recorded)}, path)
         shutil.rmtree(run / "edits" / "resumed.partial", ignore_errors=True)
         assert run_texture_edit(*args, **kwargs, stop_at=1) == {"step": 1}, key
+
+
+def test_fit_transform_starts_near_the_target_and_is_not_refitted_on_resume(texture_run):
+    """With the shared transform fitted to view K's target, the first step's photometric loss
+    (before any update) is far below the one of an edit that starts at no change; a run resumed
+    after that step goes on from its checkpoint, not from a new fit (bit-exact with an
+    uninterrupted one)."""
+    run, _ = texture_run
+    cfg = TextureEditConfig(**TINY_TEXTURE_EDIT, fit_transform=True)
+    kwargs = {"region": run / "region.png", "progress": False}
+
+    def saved(name: str) -> dict:
+        return torch.load(run / "edits" / f"{name}.partial" / "checkpoint.pt", weights_only=True)
+
+    def first_photometric(name: str) -> float:
+        return json.loads(saved(name)["log"])[0]["photometric"]
+
+    run_texture_edit(run, VIEW, run / "target.png", "fit_a", cfg, **kwargs, stop_at=1)
+    default = TextureEditConfig(**TINY_TEXTURE_EDIT)
+    run_texture_edit(run, VIEW, run / "target.png", "no_fit", default, **kwargs, stop_at=1)
+    assert first_photometric("fit_a") < 0.5 * first_photometric("no_fit")
+    run_texture_edit(run, VIEW, run / "target.png", "fit_a", cfg, **kwargs, stop_at=3)
+    for stop in (2, 3):  # interrupted after the first step, resumed
+        run_texture_edit(run, VIEW, run / "target.png", "fit_b", cfg, **kwargs, stop_at=stop)
+    a, b = (saved(n)["state"]["compositor"]["state_dict"] for n in ("fit_a", "fit_b"))
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    for name in ("fit_a", "fit_b", "no_fit"):
+        shutil.rmtree(run / "edits" / f"{name}.partial")
 
 
 def test_an_edit_of_a_template_fitted_again_is_learnt_again(texture_run, capsys):
