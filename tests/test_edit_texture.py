@@ -241,6 +241,28 @@ def test_affine_head_shared_transform_has_its_own_learning_rate():
         assert {g["name"]: g["lr"] for g in groups}["compositor"] == lr
 
 
+def test_with_a_fitted_transform_the_per_pixel_parts_learn_slower():
+    from edit.texture_edit import options_in_effect, texture_parts
+
+    template = TemplateField(TemplateFieldConfig(grid=SMALL_GRID))
+    cfg = TextureEditConfig(lr_grid=1e-3, lr_mlp=2e-3, lr_compositor=4e-3, lr_transform=5e-3)
+
+    def rates(cfg):
+        return {g["name"]: g["lr"] for g in texture_parts(template, cfg, torch.device("cpu"))[3]}
+
+    plain = rates(dataclasses.replace(cfg, fit_transform=False))
+    assert plain == {"grid": 1e-3, "mlp": 2e-3, "compositor": 4e-3, "transform": 5e-3}
+    fitted = rates(dataclasses.replace(cfg, fit_transform=True, fitted_lr_factor=0.1))
+    assert fitted == pytest.approx(
+        {"grid": 1e-4, "mlp": 2e-4, "compositor": 4e-4, "transform": 5e-3}
+    )
+    # nothing is fitted without the affine head's shared transform or without a target
+    residual = dataclasses.replace(cfg, fit_transform=True, compositor_head="residual")
+    assert rates(residual)["grid"] == 1e-3
+    unaligned = options_in_effect(dataclasses.replace(cfg, fit_transform=True), "photo.png")
+    assert not unaligned.fit_transform and rates(unaligned) == plain
+
+
 def test_composite_hwc_without_compositor_is_the_clamped_sum():
     template = torch.tensor([[[0.2, 0.5, 0.9]]])
     mod = torch.tensor([[[0.3, -0.7, 0.4]]])
