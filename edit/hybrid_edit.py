@@ -259,6 +259,7 @@ def _edit(
     phase: dict = {}  # the texture steps, built on the frozen geometric edit when they start
 
     def texture_phase(fresh: bool) -> dict:  # fresh: not resumed within the texture steps
+        names = tuple(f"texture.{n}" for n in texture_edit.PER_PIXEL_GROUPS)
         if not phase:
             edited = deformed_template(template, freeze(geo_editing), gcfg.band_width)
             try:
@@ -295,7 +296,9 @@ def _edit(
                 setup,
                 device,
                 feature_geometry=edited,
-                fresh=fresh,
+                slow_down=(lambda f: texture_edit.scale_learning_rates(trainer, names, f))
+                if fresh
+                else None,
             )
             phase.update(setup=setup, step=step, mask_source=mask_source)
         return phase

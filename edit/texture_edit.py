@@ -95,6 +95,7 @@ from __future__ import annotations
 
 import copy
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -207,16 +208,24 @@ class TextureEditConfig(LoopOptions):
     )
     fit_transform: bool = option(
         False,
-        "--compositor-head affine with the gate, aligned target: the shared colour transform "
-        "starts at the least-squares transform from the template to the target on view K's "
-        "region instead of no change, and the per-pixel parts (the UNet, F_dT) learn at "
-        "--fitted-lr-factor x their rates: they only add what differs from it",
+        "--compositor-head affine with the gate, aligned target: fit the shared colour "
+        "transform by least squares from the template to the target on view K's region; where "
+        "it explains the change (relative residual <= --fit-max-residual: a hue turned, a "
+        "colour painted over a part's shades) the edit starts from it and the per-pixel parts "
+        "(the UNet, F_dT) learn at --fitted-lr-factor x their rates, else from no change",
+    )
+    fit_max_residual: float = option(
+        0.3,
+        "--fit-transform: the largest |residual| / |change| over view K's region for which the "
+        "fitted transform is kept (the bench's 120-degree hue turns: 0.08-0.17; half the part "
+        "painted one colour: 0.55-0.76)",
+        low=0.0,
     )
     fitted_lr_factor: float = option(
         0.1,
-        "with --fit-transform: factor on the learning rates of the compositor's UNet and of "
-        "F_dT (at full rates they fit view K's own template error from the fitted start, which "
-        "carries badly to other views: toycar 27.0 dB held-out against 28.9 at 0.1)",
+        "--fit-transform, the fit kept: factor on the learning rates of the compositor's UNet "
+        "and of F_dT (at full rates they fit view K's own template error from the fitted "
+        "start, which carries badly to other views: toycar 27.0 dB held-out against 28.9)",
         low=1e-6,
         high=1.0,
     )
@@ -404,6 +413,7 @@ class TextureSetup:
     style_image: np.ndarray  # [H', W', 3] the image whose CLS L_tex aims at
     region: np.ndarray  # [H, W] bool
     photo: ReferencePhoto | None = None  # the reference photo (unaligned case)
+    transform_fit: dict | None = None  # `start_from_fit`'s verdict (fit_transform, fresh runs)
 
 
 def read_reference(path, background, mask: str = "auto") -> ReferencePhoto:
@@ -718,6 +728,8 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
     }
     if cfg.method == "ours":
         metrics["mask_source"] = mask_source
+    if setup.transform_fit is not None:
+        metrics["transform_fit"] = setup.transform_fit
     if setup.photo is not None:
         metrics["reference_pixels"] = setup.photo.pixels
     panels = [template_rgb, rendered]
@@ -791,7 +803,9 @@ def _ours(run, cfg, trainer, template, sampler, background, setup: TextureSetup,
         background,
         setup,
         device,
-        fresh=trainer.step == 0,
+        slow_down=(lambda f: scale_learning_rates(trainer, PER_PIXEL_GROUPS, f))
+        if trainer.step == 0
+        else None,
     )
     return editing, compositor, step, mask_source
 
@@ -817,22 +831,54 @@ def texture_parts(template, cfg: TextureEditConfig, device):
         freeze(deform)
     texture = editing.texture
     compositor = Compositor(head=cfg.compositor_head).to(device) if cfg.compositor else None
-    slow = cfg.fitted_lr_factor if fits_transform(cfg) else 1.0  # the per-pixel parts
     groups = [
-        {"params": [texture.grid.table], "lr": slow * cfg.lr_grid, "eps": 1e-15, "name": "grid"},
-        {"params": list(texture.mlp.parameters()), "lr": slow * cfg.lr_mlp, "name": "mlp"},
+        {"params": [texture.grid.table], "lr": cfg.lr_grid, "eps": 1e-15, "name": "grid"},
+        {"params": list(texture.mlp.parameters()), "lr": cfg.lr_mlp, "name": "mlp"},
     ]
     state = {"editing": editing}
     if compositor is not None:
         shared = "head.bias" if compositor.kind == "affine" else None  # the shared transform
         rest = [p for n, p in compositor.named_parameters() if n != shared]
-        groups.append({"params": rest, "lr": slow * compositor_lr(cfg), "name": "compositor"})
+        groups.append({"params": rest, "lr": compositor_lr(cfg), "name": "compositor"})
         if shared:
             groups.append(
                 {"params": [compositor.head.bias], "lr": cfg.lr_transform, "name": "transform"}
             )
         state["compositor"] = compositor
     return editing, compositor, state, groups
+
+
+PER_PIXEL_GROUPS = ("grid", "mlp", "compositor")  # F_dT and the UNet (not the transform)
+
+
+def scale_learning_rates(trainer, names: tuple[str, ...], factor: float) -> None:
+    """Multiplies the learning rates of the trainer's parameter groups `names` by `factor`, now
+    and for the rest of their schedules (saved with the optimiser and scheduler: a resumed run
+    keeps them)."""
+    for i, group in enumerate(trainer.optimizer.param_groups):
+        if group["name"] in names:
+            group["lr"] *= factor
+            group["initial_lr"] *= factor
+            trainer.scheduler.base_lrs[i] *= factor
+
+
+def start_from_fit(cfg, compositor, view: ViewSamples, slow_down) -> dict:
+    """`fit_transform` on view K (`view`, with its goal and gate): the least-squares shared
+    transform from the template to the target on the region, kept where its relative residual
+    is at most `fit_max_residual` (the per-pixel parts then slowed by `fitted_lr_factor`), else
+    undone (no change, full rates). -> {"residual": |residual| / |change|, "kept": bool}."""
+    px = view.editable  # [P] bool
+    part = None if view.part_rgb is None else view.part_rgb[px]
+    template, goal = view.template_rgb[px], view.goal[px]
+    residual = fit_shared_transform(compositor, template, goal, view.region[px], part)
+    ratio = float(residual.norm() / (goal - template).norm().clamp_min(1e-12))
+    kept = ratio <= cfg.fit_max_residual
+    if kept:
+        slow_down(cfg.fitted_lr_factor)
+    else:
+        with torch.no_grad():
+            compositor.head.bias.zero_()
+    return {"residual": ratio, "kept": kept}
 
 
 def texture_steps(
@@ -847,14 +893,15 @@ def texture_steps(
     setup: TextureSetup,
     device,
     feature_geometry=None,
-    fresh: bool = True,
+    slow_down: Callable[[float], None] | None = None,
 ):
     """(step, mask source) of F_dT + compositor, once `Trainer.start` has restored a resumed
     run's state: `template` (frozen field) and `sampler` render the views I_o comes from, `gen`
     is the trainer's generator; step(i) is step i of this training (0..cfg.iterations-1).
     feature_geometry: the scene of `template` and `sampler` when it is not the run's template
     (a hybrid edit's `deformed_template`): the semantic masks' feature maps are rendered on it.
-    fresh: the compositor has not been trained yet (not resumed): `fit_transform` applies."""
+    slow_down: for a fresh (not resumed) edit, multiplies the learning rates of F_dT and of the
+    UNet by its argument (`scale_learning_rates`); with it, `fit_transform` applies."""
     from edit.dino import load_dino
     from edit.texture_loss import TextureLoss, sliced_wasserstein
 
@@ -922,12 +969,8 @@ def texture_steps(
     if setup.target_rgb is not None:  # kept with the view, so crops carry it along
         target = torch.from_numpy(setup.target_rgb.reshape(-1, 3)).to(device)
         k_view.goal = target
-        if fresh and fits_transform(cfg) and k_view.region is not None:
-            px = k_view.editable  # [P] bool
-            part = None if k_view.part_rgb is None else k_view.part_rgb[px]
-            fit_shared_transform(
-                compositor, k_view.template_rgb[px], target[px], k_view.region[px], part
-            )
+        if slow_down is not None and fits_transform(cfg) and k_view.region is not None:
+            setup.transform_fit = start_from_fit(cfg, compositor, k_view, slow_down)
     region_px = torch.nonzero(k_view.editable)[:, 0].cpu()
     object_px = torch.nonzero(k_view.opacity > 0.5)[:, 0].cpu()
     if len(object_px) == 0:

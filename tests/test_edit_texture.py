@@ -241,26 +241,14 @@ def test_affine_head_shared_transform_has_its_own_learning_rate():
         assert {g["name"]: g["lr"] for g in groups}["compositor"] == lr
 
 
-def test_with_a_fitted_transform_the_per_pixel_parts_learn_slower():
-    from edit.texture_edit import options_in_effect, texture_parts
+def test_no_transform_is_fitted_without_an_aligned_target_or_the_affine_head():
+    from edit.texture_edit import fits_transform, options_in_effect
 
-    template = TemplateField(TemplateFieldConfig(grid=SMALL_GRID))
-    cfg = TextureEditConfig(lr_grid=1e-3, lr_mlp=2e-3, lr_compositor=4e-3, lr_transform=5e-3)
-
-    def rates(cfg):
-        return {g["name"]: g["lr"] for g in texture_parts(template, cfg, torch.device("cpu"))[3]}
-
-    plain = rates(dataclasses.replace(cfg, fit_transform=False))
-    assert plain == {"grid": 1e-3, "mlp": 2e-3, "compositor": 4e-3, "transform": 5e-3}
-    fitted = rates(dataclasses.replace(cfg, fit_transform=True, fitted_lr_factor=0.1))
-    assert fitted == pytest.approx(
-        {"grid": 1e-4, "mlp": 2e-4, "compositor": 4e-4, "transform": 5e-3}
-    )
-    # nothing is fitted without the affine head's shared transform or without a target
-    residual = dataclasses.replace(cfg, fit_transform=True, compositor_head="residual")
-    assert rates(residual)["grid"] == 1e-3
-    unaligned = options_in_effect(dataclasses.replace(cfg, fit_transform=True), "photo.png")
-    assert not unaligned.fit_transform and rates(unaligned) == plain
+    cfg = TextureEditConfig(fit_transform=True)
+    assert fits_transform(cfg) and fits_transform(options_in_effect(cfg, None))
+    assert not fits_transform(options_in_effect(cfg, "photo.png"))  # a reference photo
+    for change in ({"compositor_head": "residual"}, {"gate": False}, {"compositor": False}):
+        assert not fits_transform(dataclasses.replace(cfg, **change)), change
 
 
 def test_composite_hwc_without_compositor_is_the_clamped_sum():
@@ -676,11 +664,14 @@ def test_interrupted_texture_edit_resumes_bit_exactly(texture_run):
         assert run_texture_edit(*args, **kwargs, stop_at=1) == {"step": 1}, key
 
 
-def test_fit_transform_starts_near_the_target_and_is_not_refitted_on_resume(texture_run):
-    """With the shared transform fitted to view K's target, the first step's photometric loss
-    (before any update) is far below the one of an edit that starts at no change; a run resumed
-    after that step goes on from its checkpoint, not from a new fit (bit-exact with an
-    uninterrupted one)."""
+def test_fit_transform_starts_near_the_target_slows_the_per_pixel_parts_and_resumes(
+    texture_run,
+):
+    """The target turns the body's hue (one colour transform): the fitted shared transform is
+    kept, so the first step's photometric loss (before any update) is far below the one of an
+    edit that starts at no change, and F_dT and the UNet learn at 0.1 x their rates (the shared
+    transform at its own). A run resumed after the first step goes on from its checkpoint, not
+    from a new fit (bit-exact). A fit whose residual is above --fit-max-residual is undone."""
     run, _ = texture_run
     cfg = TextureEditConfig(**TINY_TEXTURE_EDIT, fit_transform=True)
     kwargs = {"region": run / "region.png", "progress": False}
@@ -691,16 +682,28 @@ def test_fit_transform_starts_near_the_target_and_is_not_refitted_on_resume(text
     def first_photometric(name: str) -> float:
         return json.loads(saved(name)["log"])[0]["photometric"]
 
-    run_texture_edit(run, VIEW, run / "target.png", "fit_a", cfg, **kwargs, stop_at=1)
-    default = TextureEditConfig(**TINY_TEXTURE_EDIT)
-    run_texture_edit(run, VIEW, run / "target.png", "no_fit", default, **kwargs, stop_at=1)
+    def rates(name: str) -> dict[str, float]:
+        groups = saved(name)["state"]["optimizer"]["state_dict"]["param_groups"]
+        return {g["name"]: g["lr"] for g in groups}
+
+    def edit(name: str, cfg: TextureEditConfig, stop: int):
+        run_texture_edit(run, VIEW, run / "target.png", name, cfg, **kwargs, stop_at=stop)
+
+    edit("fit_a", cfg, 1)
+    edit("no_fit", TextureEditConfig(**TINY_TEXTURE_EDIT), 1)
     assert first_photometric("fit_a") < 0.5 * first_photometric("no_fit")
-    run_texture_edit(run, VIEW, run / "target.png", "fit_a", cfg, **kwargs, stop_at=3)
+    slowed = {k: rates("fit_a")[k] / rates("no_fit")[k] for k in rates("no_fit")}
+    assert slowed == pytest.approx({"grid": 0.1, "mlp": 0.1, "compositor": 0.1, "transform": 1})
+    edit("fit_a", cfg, 3)
     for stop in (2, 3):  # interrupted after the first step, resumed
-        run_texture_edit(run, VIEW, run / "target.png", "fit_b", cfg, **kwargs, stop_at=stop)
+        edit("fit_b", cfg, stop)
     a, b = (saved(n)["state"]["compositor"]["state_dict"] for n in ("fit_a", "fit_b"))
     assert all(torch.equal(a[k], b[k]) for k in a)
-    for name in ("fit_a", "fit_b", "no_fit"):
+    assert rates("fit_a") == rates("fit_b")
+    edit("undone", dataclasses.replace(cfg, fit_max_residual=0.0), 1)
+    assert first_photometric("undone") == pytest.approx(first_photometric("no_fit"), rel=1e-4)
+    assert rates("undone") == rates("no_fit")
+    for name in ("fit_a", "fit_b", "no_fit", "undone"):
         shutil.rmtree(run / "edits" / f"{name}.partial")
 
 
