@@ -153,10 +153,13 @@ def test_hybrid_edit_lowers_both_losses_and_changes_shape_and_colour(hybrid_run)
 
 def test_interrupted_hybrid_edit_resumes_bit_exactly(hybrid_run):
     """Stopped in the geometric steps, then in the texture steps: the same parameters as an
-    uninterrupted run."""
+    uninterrupted run (the texture steps start from the fitted colour transform and slowed
+    per-pixel parts, which the resumed run takes from its checkpoint, not from a new fit)."""
     run, _ = hybrid_run
     geometry = GeometryEditConfig(**{**TINY_GEOMETRY_EDIT, "iterations": 8, "rebuild_every": 5})
-    texture = TextureEditConfig(**{**TINY_TEXTURE_EDIT, "iterations": 8, "tex_views": 0})
+    texture = TextureEditConfig(
+        **{**TINY_TEXTURE_EDIT, "iterations": 8, "tex_views": 0, "fit_transform": True}
+    )
 
     def edit(name, **kwargs):
         return run_hybrid_edit(

@@ -673,7 +673,8 @@ def test_fit_transform_starts_near_the_target_slows_the_per_pixel_parts_and_resu
     transform at its own). A run resumed after the first step goes on from its checkpoint, not
     from a new fit (bit-exact). A fit whose residual is above --fit-max-residual is undone."""
     run, _ = texture_run
-    cfg = TextureEditConfig(**TINY_TEXTURE_EDIT, fit_transform=True)
+    assert TextureEditConfig().fit_transform  # the default
+    cfg = TextureEditConfig(**{**TINY_TEXTURE_EDIT, "fit_transform": True})
     kwargs = {"region": run / "region.png", "progress": False}
 
     def saved(name: str) -> dict:
@@ -690,7 +691,7 @@ def test_fit_transform_starts_near_the_target_slows_the_per_pixel_parts_and_resu
         run_texture_edit(run, VIEW, run / "target.png", name, cfg, **kwargs, stop_at=stop)
 
     edit("fit_a", cfg, 1)
-    edit("no_fit", TextureEditConfig(**TINY_TEXTURE_EDIT), 1)
+    edit("no_fit", dataclasses.replace(cfg, fit_transform=False), 1)
     assert first_photometric("fit_a") < 0.5 * first_photometric("no_fit")
     slowed = {k: rates("fit_a")[k] / rates("no_fit")[k] for k in rates("no_fit")}
     assert slowed == pytest.approx({"grid": 0.1, "mlp": 0.1, "compositor": 0.1, "transform": 1})
