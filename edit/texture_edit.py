@@ -463,8 +463,8 @@ def compositor_lr(cfg: TextureEditConfig) -> float:
 
 def options_in_effect(cfg: TextureEditConfig, reference) -> TextureEditConfig:
     """`cfg` as it acts on an edit: the compositor's learning rate resolved for its head; without
-    a reference photo the colour term is off and no photo is masked, with one no transform is
-    fitted (and they are recorded so: edits made before those options existed are reused)."""
+    a reference photo the colour term is off and no photo is masked, with one no colour
+    transform is fitted (each recorded so: edits made before those options existed are reused)."""
     cfg = replace(cfg, lr_compositor=compositor_lr(cfg))
     if reference is not None:  # no target to fit the transform to
         return replace(cfg, fit_transform=False)
@@ -873,6 +873,8 @@ def start_from_fit(cfg, compositor, view: ViewSamples, slow_down) -> dict:
     is at most `fit_max_residual` (the per-pixel parts then slowed by `fitted_lr_factor`), else
     undone (no change, full rates). -> {"residual": |residual| / |change|, "kept": bool}."""
     px = view.editable  # [P] bool
+    if int(px.sum()) < 4:  # fewer pixels than the transform's 4 unknowns per channel
+        return {"residual": None, "kept": False}
     part = None if view.part_rgb is None else view.part_rgb[px]
     template, goal = view.template_rgb[px], view.goal[px]
     residual = fit_shared_transform(compositor, template, goal, view.region[px], part)
