@@ -379,18 +379,22 @@ RECORDED_BEFORE = {
 }
 
 
+def affine_with_gate(cfg: TextureEditConfig) -> bool:
+    """The compositor's affine head with the 3D gate: what the part's share and the fitted
+    transform act through."""
+    return bool(cfg.compositor and cfg.gate and cfg.compositor_head == "affine")
+
+
 def fits_transform(cfg: TextureEditConfig) -> bool:
-    """Whether the shared transform starts at its least-squares fit (`fit_transform`: the
-    affine head with the gate; `options_in_effect` turns it off without an aligned target)."""
-    return bool(
-        cfg.fit_transform and cfg.compositor and cfg.gate and cfg.compositor_head == "affine"
-    )
+    """Whether the shared transform starts at its least-squares fit (`fit_transform` with the
+    affine head and the gate; `options_in_effect` turns it off without an aligned target)."""
+    return affine_with_gate(cfg) and cfg.fit_transform
 
 
 def uses_part_colour(cfg: TextureEditConfig) -> bool:
-    """Whether the compositor transforms the part's share P of each pixel (`part_colour`: the
-    affine head with the gate; the residual head has no transform to restrict)."""
-    return bool(cfg.compositor and cfg.gate and cfg.part_colour and cfg.compositor_head == "affine")
+    """Whether the compositor transforms the part's share P of each pixel (`part_colour` with
+    the affine head and the gate; the residual head has no transform to restrict)."""
+    return affine_with_gate(cfg) and cfg.part_colour
 
 
 # The compositor UNet's learning rate by head (`lr_compositor` None).
@@ -977,7 +981,7 @@ def texture_steps(
     if setup.target_rgb is not None:  # kept with the view, so crops carry it along
         target = torch.from_numpy(setup.target_rgb.reshape(-1, 3)).to(device)
         k_view.goal = target
-        if slow_down is not None and fits_transform(cfg) and k_view.region is not None:
+        if slow_down is not None and fits_transform(cfg):  # the gate: k_view has its region
             setup.transform_fit = start_from_fit(cfg, compositor, k_view, slow_down)
     region_px = torch.nonzero(k_view.editable)[:, 0].cpu()
     object_px = torch.nonzero(k_view.opacity > 0.5)[:, 0].cpu()
