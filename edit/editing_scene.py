@@ -218,8 +218,11 @@ class TextureEditScene(EditScene):
                 )
                 for i in range(len(sub["rgb"]))
             ]
-        edited = torch.stack(composites).mean(dim=0)
         template = torch.from_numpy(out["rgb"]).to(self.device)
+        # pixels a silhouette crosses were rendered again with more rays (`render_image`): the
+        # edit's change of the sub-pixel images carried onto the template's finer pixel, so a
+        # pixel the edit leaves alone is exactly the template's
+        edited = torch.stack(composites).mean(dim=0) + template - sub["rgb"].mean(dim=0)
         rgb = (1.0 - self.strength) * template + self.strength * edited
         return {"rgb": rgb.cpu().numpy(), **{k: out[k] for k in ("opacity", "depth", "z")}}
 

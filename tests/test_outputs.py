@@ -23,6 +23,7 @@ from render.errors import SineError
 from render.evaluation import image_metrics, to_run_frame
 from render.io import read_image, write_json
 from render.mesh_export import denormalize_points, save_colored_mesh, surface_colors
+from render.renderer import EDGE_SPREAD
 from render.video import video_info, write_video
 from render.viewer import build_scene, screen_right, screenshot, view_direction
 
@@ -239,13 +240,20 @@ def test_load_scene_template_and_missing_edit(tiny_fitted_run):
     assert set(out) == {"rgb", "opacity", "depth", "z"}
     assert out["rgb"].shape == (16, 16, 3) and out["z"].shape == (16, 16)
     # supersample 2 (the fit's default): each pixel is the mean of the 2 x 2 pixels of a
-    # twice larger render with one ray per pixel
+    # twice larger render with one ray per pixel; where those differ in opacity (a silhouette
+    # crosses the pixel), of the 4 x 4 pixels of a 4 x larger one
     assert scene.supersample == 2  # the template's `sine fit --supersample`
     smooth = scene.render_view(cam)
-    big = load_scene(tiny_fitted_run, device="cpu", supersample=1).render_view(cam.resized(32, 32))
+    one_ray = load_scene(tiny_fitted_run, device="cpu", supersample=1)
+    big, bigger = (one_ray.render_view(cam.resized(16 * s, 16 * s)) for s in (2, 4))
+    sub = big["opacity"].reshape(16, 2, 16, 2)
+    again = sub.max(axis=(1, 3)) - sub.min(axis=(1, 3)) > EDGE_SPREAD
+    assert again.any() and not again.all()
     for key in ("rgb", "opacity"):
-        blocks = big[key].reshape(16, 2, 16, 2, -1).mean(axis=(1, 3))
-        np.testing.assert_allclose(smooth[key], blocks.reshape(smooth[key].shape), atol=1e-5)
+        two = big[key].reshape(16, 2, 16, 2, -1).mean(axis=(1, 3)).reshape(smooth[key].shape)
+        four = bigger[key].reshape(16, 4, 16, 4, -1).mean(axis=(1, 3)).reshape(smooth[key].shape)
+        np.testing.assert_allclose(smooth[key][~again], two[~again], atol=1e-5)
+        np.testing.assert_allclose(smooth[key][again], four[again], atol=1e-5)
     with pytest.raises(SineError, match="edit nope not found"):
         load_scene(tiny_fitted_run, edit="nope", device="cpu")
 

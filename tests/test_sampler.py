@@ -229,6 +229,35 @@ def test_chunked_render_keeps_extra_channels_of_chunks_without_hits():
     assert torch.all(out["opacity"][:4] == 0) and torch.allclose(out["opacity"][4:], torch.ones(4))
 
 
+def test_render_image_renders_silhouette_pixels_again():
+    """supersample 2 with the default edge_supersample (4): a pixel whose 2 x 2 rays' opacities
+    differ is exactly the 4 x 4 render's pixel, every other pixel the 2 x 2 render's; the
+    opacity's sum comes closer to the sphere's projected area (35.90 px^2)."""
+    from render.cameras import Camera, look_at
+
+    cam = Camera(
+        16, 12, 20.0, 20.0, 8.0, 6.0, camera_to_world=look_at(np.array([0, -3.0, 0]), np.zeros(3))
+    )
+    sampler = BandSampler(ProxyRaycaster(_sphere(0.5), inflate=0.05), n_band=8, n_coarse=2)
+    area = np.pi * (20.0 * np.tan(np.arcsin(0.5 / 3.0))) ** 2
+
+    def render(s, t=None, subpixels=()):
+        field, bg = _solid_sphere_field, torch.ones(3)
+        return render_image(cam, field, sampler, bg, supersample=s, edge_supersample=t,
+                            subpixels=subpixels)  # fmt: skip
+
+    two, four, both = render(2, 2, ("opacity",)), render(4, 4), render(2)
+    sub = two["opacity_subpixels"][..., 0]  # [4, H, W]
+    again = sub.max(axis=0) - sub.min(axis=0) > 0.05
+    assert 0 < again.sum() < 0.3 * again.size
+    for k in ("rgb", "opacity", "z"):
+        np.testing.assert_allclose(both[k][again], four[k][again], atol=1e-5)
+        np.testing.assert_allclose(both[k][~again], two[k][~again], atol=1e-6)
+    assert abs(both["opacity"].sum() - area) < abs(two["opacity"].sum() - area)
+    assert both["samples_per_pixel"] > two["samples_per_pixel"]
+    assert render(1)["opacity"].shape == (12, 16)  # one ray per pixel: nothing rendered again
+
+
 def test_render_image_supersample_integrates_each_pixel():
     """s x s rays per pixel, box-filtered: the rendered opacity sums to the sphere's projected
     area (pi (f tan(asin(r / d)))^2 = 35.90 px^2 for r 0.5, d 3, f 20), which one ray per
@@ -241,7 +270,9 @@ def test_render_image_supersample_integrates_each_pixel():
     sampler = BandSampler(ProxyRaycaster(_sphere(0.5), inflate=0.05), n_band=8, n_coarse=2)
     area = np.pi * (20.0 * np.tan(np.arcsin(0.5 / 3.0))) ** 2
     one = render_image(cam, _solid_sphere_field, sampler, torch.ones(3))
-    five = render_image(cam, _solid_sphere_field, sampler, torch.ones(3), supersample=5)
+    five = render_image(  # the s x s rays alone (silhouette pixels not rendered again)
+        cam, _solid_sphere_field, sampler, torch.ones(3), supersample=5, edge_supersample=5
+    )
     assert five["rgb"].shape == (12, 16, 3) and five["feat"].shape == (12, 16, 1)
     assert set(np.unique(np.round(one["opacity"], 3))) <= {0.0, 1.0}
     assert 0 < np.sum((five["opacity"] > 0.01) & (five["opacity"] < 0.99))  # soft edge
@@ -257,7 +288,7 @@ def test_render_image_supersample_integrates_each_pixel():
     # a 5x larger camera's one-ray render, starting at row i, column j; their mean is the pixel
     subs = render_image(
         cam, _solid_sphere_field, sampler, torch.ones(3), supersample=5, subpixels=("rgb",)
-    )
+    )  # with the silhouette pixels rendered again (10 x 10): the sub-pixel images stay 5 x 5
     assert subs["rgb_subpixels"].shape == (25, 12, 16, 3) and "opacity_subpixels" not in subs
     np.testing.assert_allclose(subs["rgb_subpixels"].mean(axis=0), five["rgb"], atol=1e-6)
     big = render_image(cam.resized(80, 60), _solid_sphere_field, sampler, torch.ones(3))

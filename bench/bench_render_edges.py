@@ -1,0 +1,113 @@
+"""Rays per pixel when rendering a template: the cost and the held-out quality, side by side.
+
+For each fitted run (a `sine fit` output, e.g. `bench/bench_fit.py --keep`'s CASE/run_NAME),
+renders the held-out views with the same field and sampler under each variant:
+
+  1            one ray through each pixel centre
+  2            2 x 2 rays per pixel, box-filtered (silhouette pixels not rendered again)
+  2+edges      2 x 2, and the pixels a silhouette crosses (their 2 x 2 rays' opacities differ
+               by more than render.renderer.EDGE_SPREAD) again with 4 x 4 (the default)
+  3, 4         3 x 3 / 4 x 4 rays for every pixel
+
+and prints held-out PSNR on object pixels (the views' masks) and over whole images, seconds per
+view, field samples per pixel and the share of pixels rendered again. One process, one variant
+after the other on the same machine; `--threads` torch threads.
+
+    .venv/bin/python bench/bench_render_edges.py RUN [RUN ...] [--threads 2] [--json OUT.json]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch: see sine_cli.py
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from recon.fit import load_fitted, load_views, make_sampler  # noqa: E402
+from recon.rundir import RunDir  # noqa: E402
+from render.metrics import masked_psnr, psnr  # noqa: E402
+from render.renderer import EDGE_SPREAD, render_image  # noqa: E402
+
+VARIANTS = {  # name: (supersample, edge_supersample)
+    "1": (1, 1),
+    "2": (2, 2),
+    "2+edges": (2, None),
+    "3": (3, 3),
+    "4": (4, 4),
+}
+
+
+def measure(run_path: Path) -> list[dict]:
+    """One row per variant for the held-out views of a fitted run."""
+    run = RunDir(run_path)
+    field, background, cfg = load_fitted(run.root)
+    sampler = make_sampler(cfg, run)
+    views = list(load_views(run, "test"))
+    device = torch.device("cpu")
+    rows = []
+    for name, (s, t) in VARIANTS.items():
+        obj, whole, samples, again = [], [], [], []
+        start = time.perf_counter()
+        for cam, image, mask in views:
+            out = render_image(cam, field, sampler, background, 16384, device, s, ("opacity",), t)
+            pred = np.clip(out["rgb"], 0.0, 1.0)
+            whole.append(psnr(pred, image))
+            if mask is not None and mask.any():
+                obj.append(masked_psnr(pred, image, mask))
+            samples.append(float(out["samples_per_pixel"]))
+            sub = out["opacity_subpixels"][..., 0]  # [s * s, H, W]
+            again.append(float(np.mean(sub.max(axis=0) - sub.min(axis=0) > EDGE_SPREAD)))
+        seconds = (time.perf_counter() - start) / max(len(views), 1)
+        rows.append(
+            {
+                "run": str(run_path),
+                "variant": name,
+                "psnr_object": float(np.mean(obj)) if obj else float("nan"),
+                "psnr": float(np.mean(whole)),
+                "seconds_per_view": seconds,
+                "samples_per_pixel": float(np.mean(samples)),
+                "pixels_again": float(np.mean(again)) if name == "2+edges" else 0.0,
+                "views": len(views),
+            }
+        )
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("runs", nargs="+", type=Path, help="fitted run directories")
+    parser.add_argument("--threads", type=int, default=2, help="torch threads")
+    parser.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    rows = []
+    print(
+        f"{'run':<34} {'variant':<8} {'obj PSNR':>8} {'PSNR':>6} {'s/view':>7} "
+        f"{'samples/px':>10} {'again':>6}"
+    )
+    for run in args.runs:
+        for r in measure(run):
+            rows.append(r)
+            name = "/".join(Path(r["run"]).parts[-2:])[-34:]
+            print(
+                f"{name:<34} {r['variant']:<8} {r['psnr_object']:>8.2f} {r['psnr']:>6.2f} "
+                f"{r['seconds_per_view']:>7.2f} {r['samples_per_pixel']:>10.1f} "
+                f"{r['pixels_again'] * 100:>5.1f}%",
+                flush=True,
+            )
+    if args.json is not None:
+        args.json.write_text(json.dumps({"rows": rows}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
