@@ -14,6 +14,10 @@ view, field samples per pixel and the share of pixels rendered again. One proces
 after the other on the same machine; `--threads` torch threads.
 
     .venv/bin/python bench/bench_render_edges.py RUN [RUN ...] [--threads 2] [--json OUT.json]
+        [--picture OUT.png]
+
+`--picture`: the first run's first held-out view, its 64 x 64 pixels around the most
+re-rendered spot enlarged 4x: 2 x 2 | 2 x 2 + edges | truth; below, |error| of each (x8).
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -35,6 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from recon.fit import load_fitted, load_views, make_sampler  # noqa: E402
 from recon.rundir import RunDir  # noqa: E402
+from render.io import write_image  # noqa: E402
 from render.metrics import masked_psnr, psnr  # noqa: E402
 from render.renderer import EDGE_SPREAD, render_image  # noqa: E402
 
@@ -83,11 +89,40 @@ def measure(run_path: Path) -> list[dict]:
     return rows
 
 
+def picture(run_path: Path, path: Path) -> None:
+    """See the module doc (`--picture`)."""
+    run = RunDir(run_path)
+    field, background, cfg = load_fitted(run.root)
+    sampler = make_sampler(cfg, run)
+    cam, image, _ = next(iter(load_views(run, "test")))
+    device = torch.device("cpu")
+    plain, edges = (
+        render_image(cam, field, sampler, background, 16384, device, 2, ("opacity",), t)
+        for t in (2, None)
+    )
+    sub = plain["opacity_subpixels"][..., 0]
+    again = (sub.max(axis=0) - sub.min(axis=0) > EDGE_SPREAD).astype(np.float32)
+    density = cv2.blur(again, (31, 31))  # where most pixels were rendered again
+    y, x = np.unravel_index(np.argmax(density), density.shape)
+    y0 = int(np.clip(y - 32, 0, image.shape[0] - 64))
+    x0 = int(np.clip(x - 32, 0, image.shape[1] - 64))
+
+    def crop(a):
+        a = np.clip(a[y0 : y0 + 64, x0 : x0 + 64], 0.0, 1.0)
+        return np.kron(a, np.ones((4, 4, 1), np.float32))
+
+    top = [crop(plain["rgb"]), crop(edges["rgb"]), crop(image)]
+    bottom = [crop(8 * np.abs(plain["rgb"] - image)), crop(8 * np.abs(edges["rgb"] - image))]
+    bottom.append(np.ones_like(top[0]))
+    write_image(path, np.concatenate([np.concatenate(top, 1), np.concatenate(bottom, 1)], 0))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("runs", nargs="+", type=Path, help="fitted run directories")
     parser.add_argument("--threads", type=int, default=2, help="torch threads")
     parser.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    parser.add_argument("--picture", type=Path, default=None, help="write the crops (see above)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     rows = []
@@ -107,6 +142,8 @@ def main() -> None:
             )
     if args.json is not None:
         args.json.write_text(json.dumps({"rows": rows}, indent=2))
+    if args.picture is not None:
+        picture(args.runs[0], args.picture)
 
 
 if __name__ == "__main__":
