@@ -183,7 +183,8 @@ def render_image(
         spread = sub_opacity.max(axis=(1, 3)) - sub_opacity.min(axis=(1, 3))  # [H, W]
         rows, cols = np.nonzero(spread > EDGE_SPREAD)
         if len(rows):
-            offsets = (np.stack(np.mgrid[0:t, 0:t][::-1], -1).reshape(-1, 2) + 0.5) / t  # [t^2, 2]
+            v, u = np.mgrid[0:t, 0:t]  # the t x t rays' places in a pixel, row by row
+            offsets = (np.stack([u.ravel(), v.ravel()], -1) + 0.5) / t  # [t^2, 2] (u, v)
             pixels = np.stack([cols, rows], -1)[:, None, :] + offsets  # [E, t^2, 2] (u, v)
             edge, more, _ = _render_pixels(
                 camera, pixels.reshape(-1, 2), field_query, sampler, background, chunk, device

@@ -242,9 +242,10 @@ def test_render_image_renders_silhouette_pixels_again():
     area = np.pi * (20.0 * np.tan(np.arcsin(0.5 / 3.0))) ** 2
 
     def render(s, t=None, subpixels=()):
-        field, bg = _solid_sphere_field, torch.ones(3)
-        return render_image(cam, field, sampler, bg, supersample=s, edge_supersample=t,
-                            subpixels=subpixels)  # fmt: skip
+        white = torch.ones(3)
+        return render_image(
+            cam, _solid_sphere_field, sampler, white, 16384, None, s, subpixels, edge_supersample=t
+        )
 
     two, four, both = render(2, 2, ("opacity",)), render(4, 4), render(2)
     sub = two["opacity_subpixels"][..., 0]  # [4, H, W]
