@@ -42,7 +42,7 @@ from recon.fit import load_fitted, load_views, make_sampler  # noqa: E402
 from recon.rundir import RunDir  # noqa: E402
 from render.io import write_image  # noqa: E402
 from render.metrics import masked_psnr, psnr  # noqa: E402
-from render.renderer import EDGE_SPREAD, render_image  # noqa: E402
+from render.renderer import render_image  # noqa: E402
 
 VARIANTS = {  # name: (supersample, edge_supersample)
     "1": (1, 1),
@@ -53,26 +53,29 @@ VARIANTS = {  # name: (supersample, edge_supersample)
 }
 
 
-def measure(run_path: Path) -> list[dict]:
-    """One row per variant for the held-out views of a fitted run."""
+def fitted(run_path: Path):
+    """(field, background, sampler, held-out views [(camera, image, mask)]) of a fitted run."""
     run = RunDir(run_path)
     field, background, cfg = load_fitted(run.root)
-    sampler = make_sampler(cfg, run)
-    views = list(load_views(run, "test"))
+    return field, background, make_sampler(cfg, run), list(load_views(run, "test"))
+
+
+def measure(run_path: Path) -> list[dict]:
+    """One row per variant for the held-out views of a fitted run."""
+    field, background, sampler, views = fitted(run_path)
     device = torch.device("cpu")
     rows = []
     for name, (s, t) in VARIANTS.items():
         obj, whole, samples, again = [], [], [], []
         start = time.perf_counter()
         for cam, image, mask in views:
-            out = render_image(cam, field, sampler, background, 16384, device, s, ("opacity",), t)
+            out = render_image(cam, field, sampler, background, 16384, device, s, (), t)
             pred = np.clip(out["rgb"], 0.0, 1.0)
             whole.append(psnr(pred, image))
             if mask is not None and mask.any():
                 obj.append(masked_psnr(pred, image, mask))
             samples.append(float(out["samples_per_pixel"]))
-            sub = out["opacity_subpixels"][..., 0]  # [s * s, H, W]
-            again.append(float(np.mean(sub.max(axis=0) - sub.min(axis=0) > EDGE_SPREAD)))
+            again.append(float(np.mean(out["rendered_again"])))
         seconds = (time.perf_counter() - start) / max(len(views), 1)
         rows.append(
             {
@@ -82,7 +85,7 @@ def measure(run_path: Path) -> list[dict]:
                 "psnr": float(np.mean(whole)),
                 "seconds_per_view": seconds,
                 "samples_per_pixel": float(np.mean(samples)),
-                "pixels_again": float(np.mean(again)) if name == "2+edges" else 0.0,
+                "pixels_again": float(np.mean(again)),
                 "views": len(views),
             }
         )
@@ -91,17 +94,13 @@ def measure(run_path: Path) -> list[dict]:
 
 def picture(run_path: Path, path: Path) -> None:
     """See the module doc (`--picture`)."""
-    run = RunDir(run_path)
-    field, background, cfg = load_fitted(run.root)
-    sampler = make_sampler(cfg, run)
-    cam, image, _ = next(iter(load_views(run, "test")))
+    field, background, sampler, views = fitted(run_path)
+    cam, image, _ = views[0]
     device = torch.device("cpu")
     plain, edges = (
-        render_image(cam, field, sampler, background, 16384, device, 2, ("opacity",), t)
-        for t in (2, None)
+        render_image(cam, field, sampler, background, 16384, device, 2, (), t) for t in (2, None)
     )
-    sub = plain["opacity_subpixels"][..., 0]
-    again = (sub.max(axis=0) - sub.min(axis=0) > EDGE_SPREAD).astype(np.float32)
+    again = edges["rendered_again"].astype(np.float32)
     density = cv2.blur(again, (31, 31))  # where most pixels were rendered again
     y, x = np.unravel_index(np.argmax(density), density.shape)
     y0 = int(np.clip(y - 32, 0, image.shape[0] - 64))

@@ -157,7 +157,8 @@ def render_image(
     weighted by the rays' opacities (the depth of what the pixel sees). A silhouette crossing a
     pixel (its s x s rays' opacities differ by more than EDGE_SPREAD) makes the pixel's mean
     converge slowly with s: those pixels are rendered again with `edge_supersample` t x t rays
-    (default 2 s; s or less: off), a few percent of the pixels. The channels named in
+    (default 2 s; s or less: off), a few percent of the pixels ("rendered_again" [H, W] bool
+    says which). The channels named in
     `subpixels` also come unfiltered, as "NAME_subpixels" [s * s, H, W, C]: the s x s images of
     one ray per pixel, each at its own offset within the pixel (for a non-linear step, such as
     a texture edit's compositor, that must act on each before the box filter); they are the
@@ -178,10 +179,11 @@ def render_image(
         if k in subpixels:  # [s * s, H, W, C]: image (i, j) holds ray (i, j) of every pixel
             out[f"{k}_subpixels"] = v.transpose(1, 3, 0, 2, 4).reshape(s * s, h, w, -1)
         out[k] = v.mean(axis=(1, 3))
+    again = np.zeros((h, w), bool)
     if s > 1 and t > s:
         sub_opacity = res["opacity"].reshape(h, s, w, s)
-        spread = sub_opacity.max(axis=(1, 3)) - sub_opacity.min(axis=(1, 3))  # [H, W]
-        rows, cols = np.nonzero(spread > EDGE_SPREAD)
+        again = sub_opacity.max(axis=(1, 3)) - sub_opacity.min(axis=(1, 3)) > EDGE_SPREAD
+        rows, cols = np.nonzero(again)
         if len(rows):
             v, u = np.mgrid[0:t, 0:t]  # the t x t rays' places in a pixel, row by row
             offsets = (np.stack([u.ravel(), v.ravel()], -1) + 0.5) / t  # [t^2, 2] (u, v)
@@ -197,6 +199,7 @@ def render_image(
     if s > 1:
         for k in ("depth", "z"):
             out[k] = np.where(out["opacity"] > 0, out[k] / np.maximum(out["opacity"], 1e-6), 0.0)
+    out["rendered_again"] = again
     out["samples_per_pixel"] = np.float32(samples / (h * w))
     return out
 

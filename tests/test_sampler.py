@@ -251,6 +251,7 @@ def test_render_image_renders_silhouette_pixels_again():
     sub = two["opacity_subpixels"][..., 0]  # [4, H, W]
     again = sub.max(axis=0) - sub.min(axis=0) > 0.05
     assert 0 < again.sum() < 0.3 * again.size
+    assert np.array_equal(both["rendered_again"], again) and not two["rendered_again"].any()
     for k in ("rgb", "opacity", "z"):
         np.testing.assert_allclose(both[k][again], four[k][again], atol=1e-5)
         np.testing.assert_allclose(both[k][~again], two[k][~again], atol=1e-6)
