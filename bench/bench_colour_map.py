@@ -1,18 +1,19 @@
 """How far one colour map carries a texture edit: the ceiling of a compositor that recolours
-the edited part with ONE affine map of the template's colours. A diagnostic on a finished
+the edited part with ONE colour map of the template's colours (the compositor's shared
+transform: linear, A c + b, or with the quadratic term). A diagnostic on a finished
 `bench/bench_edit_texture.py` object folder (its template only; no edit needed).
 
     python bench/bench_edit_texture.py --out DIR --objects toycar --methods template
     python bench/bench_colour_map.py DIR/toycar [--threads 1]
 
-The map target - source ~ A source + b is fitted on the edit view K (the bench's: the training
-view where the GT edit changes the most pixels) from the template's rendering to the GT edited
-image, over the edited part's GT label pixels, by least squares with a ridge r on A
-(A = C_dx (C_xx + r I)^-1 over centred colours; b free). It is then applied to the template's
-rendering of the held-out views (every 4th view, K excluded) on the part's GT label pixels and
-scored against the GT edit there (PSNR over those pixels), for several ridges; "identity" is the
-template unchanged, "oracle" the map fitted on the held-out pixels themselves. The GT region is
-what an edit does not have: this measures the map, not where the edit applies it.
+The map is fitted on the edit view K (the bench's: the training view where the GT edit changes
+the most pixels) from the template's rendering to the GT edited image, over the edited part's GT
+label pixels, by `edit.compositor.fit_shared_transform` (least squares with a ridge r towards no
+change, relative to the colours' second moments) for several ridges. It is then applied to the
+template's rendering of the held-out views (every 4th view, K excluded) on the part's GT label
+pixels and scored against the GT edit there (PSNR over those pixels); "identity" is the template
+unchanged, "oracle" the map fitted on the held-out pixels themselves. The GT region is what an
+edit does not have: this measures the map, not where the edit applies it.
 """
 
 from __future__ import annotations
@@ -29,22 +30,25 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 RIDGES = (0.0, 1e-4, 1e-3, 1e-2, 1e-1)
 
 
-def fit_colour_map(source: np.ndarray, target: np.ndarray, ridge: float) -> np.ndarray:
-    """[A.flatten(), b] [12] of target - source ~ A source + b (source, target [N, 3]), with a
-    ridge on A: directions the source colours barely vary along leave A's action near zero."""
-    x, d = source.astype(np.float64), (target - source).astype(np.float64)
-    xc, dc = x - x.mean(0), d - d.mean(0)
-    cov_xx, cov_dx = xc.T @ xc / len(x), dc.T @ xc / len(x)
-    a = np.linalg.solve(cov_xx + ridge * np.eye(3), cov_dx.T).T
-    return np.concatenate([a.ravel(), d.mean(0) - a @ x.mean(0)])
+def fitted_map(source: np.ndarray, target: np.ndarray, ridge: float, quadratic: bool):
+    """The compositor's shared transform (`edit.compositor.fit_shared_transform`, the part's own
+    colours with g = 1) fitted from `source` [N, 3] to `target` [N, 3] -> colours [M, 3] -> the
+    mapped colours [M, 3] (the compositor applied with I_m = 0)."""
+    import torch
 
+    from edit.compositor import Compositor, fit_shared_transform
 
-def mapped_psnr(colour_map: np.ndarray, source: np.ndarray, target: np.ndarray) -> float:
-    """PSNR of the colours `source` [N, 3] through the map against `target` [N, 3]."""
-    from bench_edit_texture import psnr
+    comp = Compositor(head="affine", quadratic=quadratic)
+    src, tgt = torch.from_numpy(source).float(), torch.from_numpy(target).float()
+    fit_shared_transform(comp, src, tgt, torch.ones(len(src)), src, ridge=ridge)
 
-    a, b = colour_map[:9].reshape(3, 3), colour_map[9:]
-    return psnr(np.clip(source + source @ a.T + b, 0.0, 1.0), target)
+    def apply(colours: np.ndarray) -> np.ndarray:
+        image = torch.from_numpy(colours).float().T[None, :, None]  # [1, 3, 1, M]
+        with torch.no_grad():
+            out = comp(image, torch.zeros_like(image), torch.ones_like(image[:, :1]), image)
+        return out[0, :, 0].T.numpy()
+
+    return apply
 
 
 def main() -> int:
@@ -55,7 +59,7 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
     args = ap.parse_args()
 
-    from bench_edit_texture import heldout_views, open_object, part_label
+    from bench_edit_texture import heldout_views, open_object, part_label, psnr
 
     from edit.scene import load_scene
     from render.io import read_image, write_json
@@ -74,17 +78,17 @@ def main() -> int:
     held = [part_colours(frames[v]) for v in heldout_views(len(frames), k)]
     source, target = np.concatenate([h[0] for h in held]), np.concatenate([h[1] for h in held])
     spread = np.linalg.eigvalsh(np.cov(source_k.T))
-    rows = {"identity": mapped_psnr(np.zeros(12), source, target)}
-    for ridge in RIDGES:
-        rows[f"ridge {ridge:g}"] = mapped_psnr(
-            fit_colour_map(source_k, target_k, ridge), source, target
-        )
-    rows["oracle"] = mapped_psnr(fit_colour_map(source, target, 0.0), source, target)
+    rows = {"identity": psnr(source, target)}
+    for kind, quadratic in (("linear", False), ("quadratic", True)):
+        for ridge in RIDGES:
+            mapped = fitted_map(source_k, target_k, ridge, quadratic)(source)
+            rows[f"{kind} ridge {ridge:g}"] = psnr(mapped, target)
+        rows[f"{kind} oracle"] = psnr(fitted_map(source, target, 0.0, quadratic)(source), target)
     print(f"view K {k}: {len(source_k)} part pixels, colour covariance eigenvalues "
           + " ".join(f"{e:.2g}" for e in spread))  # fmt: skip
-    print(f"{'map':16s}{'held-out part PSNR':>20s}")
+    print(f"{'map':24s}{'held-out part PSNR':>20s}")
     for name, value in rows.items():
-        print(f"{name:16s}{value:20.2f}")
+        print(f"{name:24s}{value:20.2f}")
     write_json(
         args.object_dir / "colour_map.json",
         {"view": k, "part_pixels_k": len(source_k), "heldout_part_psnr": rows},

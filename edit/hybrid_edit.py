@@ -257,7 +257,6 @@ def _edit(
     geometry_step = geometry.begin(trainer.generator)
     geo_editing = geometry.state["editing"]
     phase: dict = {}  # the texture steps, built on the frozen geometric edit when they start
-    per_pixel = tuple(f"texture.{n}" for n in texture_edit.PER_PIXEL_GROUPS)
 
     def texture_phase(fresh: bool) -> dict:  # fresh: not resumed within the texture steps
         if not phase:
@@ -296,7 +295,11 @@ def _edit(
                 setup,
                 device,
                 feature_geometry=edited,
-                slow_down=(lambda f: texture_edit.scale_learning_rates(trainer, per_pixel, f))
+                slow_down=(
+                    lambda names, f: texture_edit.scale_learning_rates(
+                        trainer, tuple(f"texture.{n}" for n in names), f
+                    )
+                )
                 if fresh
                 else None,
             )

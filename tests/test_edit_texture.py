@@ -213,6 +213,50 @@ def test_the_shared_transform_starts_at_the_least_squares_fit_to_the_target():
         fit_shared_transform(Compositor(), template, target, g)
 
 
+def test_the_quadratic_term_is_fitted_and_rendered_with_the_parts_share():
+    """A target made by a quadratic colour map of the part's own colour c (A c + b + Q c c^T
+    terms) on pixels partly the part's (share g): the fit recovers A, b and Q, the compositor
+    renders the target (a rim pixel's change is g times the part pixel's), it starts as no
+    change, and a saved compositor comes back with its quadratic term."""
+    from edit.compositor import PAIRS, fit_shared_transform
+
+    gen = torch.Generator().manual_seed(1)
+    n = 300
+    a = torch.randn(3, 3, generator=gen) * 0.2
+    b = torch.tensor([0.05, -0.02, 0.01])
+    q = torch.randn(3, 6, generator=gen) * 0.2
+    own = torch.rand(n, 3, generator=gen) * 0.8 + 0.1  # the part's colours
+    g = torch.ones(n)
+    g[:60] = torch.rand(60, generator=gen) * 0.9 + 0.1  # rim pixels
+    part = g[:, None] * own
+    template = part + (1 - g[:, None]) * torch.tensor([0.2, 0.5, 0.7])
+    products = torch.stack([own[:, i] * own[:, j] for i, j in PAIRS], dim=1)  # [N, 6]
+    change = own @ a.T + b + products @ q.T  # [N, 3] a whole part pixel's change
+    target = template + g[:, None] * change
+    comp = Compositor(head="affine", quadratic=True)
+    assert comp(template.T[None, :, None], torch.zeros(1, 3, 1, n)).allclose(
+        template.T[None, :, None].clamp(1e-4, 1 - 1e-4)
+    )  # untrained: no change
+    residual = fit_shared_transform(comp, template, target, g, part, ridge=1e-9)
+    assert residual.abs().max() < 1e-5
+    assert torch.allclose(comp.quadratic, q, atol=1e-4)
+    assert torch.allclose(comp.head.bias[:9].reshape(3, 3), a, atol=1e-4)
+
+    def as_image(x, channels=3):  # [N, C] -> [1, C, 1, N]
+        return x.T.reshape(1, channels, 1, n)
+
+    out = comp(as_image(template), torch.zeros(1, 3, 1, n), as_image(g[:, None], 1), as_image(part))
+    assert torch.allclose(out[0, :, 0].T, target.clamp(0, 1), atol=1e-4)
+    linear = Compositor(head="affine")
+    assert fit_shared_transform(linear, template, target, g, part, ridge=1e-9).abs().max() > 0.01
+    again = Compositor.for_state(comp.state_dict())
+    assert (
+        again.quadratic is not None and Compositor.for_state(linear.state_dict()).quadratic is None
+    )
+    with pytest.raises(ValueError, match="affine"):
+        Compositor(quadratic=True)
+
+
 def test_the_parts_share_is_used_by_the_affine_head_with_the_gate_only():
     from edit.texture_edit import uses_part_colour
 
@@ -229,7 +273,13 @@ def test_affine_head_shared_transform_has_its_own_learning_rate():
     cfg = TextureEditConfig(compositor_head="affine", lr_compositor=1e-3, lr_transform=0.05)
     _, comp, _, groups = texture_parts(template, cfg, torch.device("cpu"))
     lrs = {g["name"]: (g["lr"], g["params"]) for g in groups}
-    assert lrs["transform"][0] == 0.05 and lrs["transform"][1] == [comp.head.bias]
+    shared = lrs["transform"][1]
+    assert lrs["transform"][0] == 0.05 and len(shared) == 2  # the bias and the quadratic term
+    assert {id(p) for p in shared} == {id(comp.head.bias), id(comp.quadratic)}
+    cfg_linear = dataclasses.replace(cfg, quadratic_transform=False)
+    _, linear, _, groups_linear = texture_parts(template, cfg_linear, torch.device("cpu"))
+    assert linear.quadratic is None
+    assert [p is linear.head.bias for p in groups_linear[-1]["params"]] == [True]
     assert lrs["compositor"][0] == 1e-3 and len(lrs["compositor"][1]) == 9  # 5 convs, one bias out
     cfg = dataclasses.replace(cfg, compositor_head="residual")
     _, comp, _, groups = texture_parts(template, cfg, torch.device("cpu"))
@@ -669,7 +719,7 @@ def test_fit_transform_starts_near_the_target_slows_the_per_pixel_parts_and_resu
 ):
     """The target turns the body's hue (one colour transform): the fitted shared transform is
     kept, so the first step's photometric loss (before any update) is far below the one of an
-    edit that starts at no change, and F_dT and the UNet learn at 0.1 x their rates (the shared
+    edit that starts at no change, and F_dT and the UNet learn at their slowed rates (the shared
     transform at its own). A run resumed after the first step goes on from its checkpoint, not
     from a new fit (bit-exact). A fit whose residual is above --fit-max-residual is undone."""
     run, _ = texture_run
@@ -694,7 +744,8 @@ def test_fit_transform_starts_near_the_target_slows_the_per_pixel_parts_and_resu
     edit("no_fit", dataclasses.replace(cfg, fit_transform=False), 1)
     assert first_photometric("fit_a") < 0.5 * first_photometric("no_fit")
     slowed = {k: rates("fit_a")[k] / rates("no_fit")[k] for k in rates("no_fit")}
-    assert slowed == pytest.approx({"grid": 0.1, "mlp": 0.1, "compositor": 0.1, "transform": 1})
+    f_dt, unet = cfg.fitted_lr_factor, cfg.fitted_compositor_factor
+    assert slowed == pytest.approx({"grid": f_dt, "mlp": f_dt, "compositor": unet, "transform": 1})
     edit("fit_a", cfg, 3)
     for stop in (2, 3):  # interrupted after the first step, resumed
         edit("fit_b", cfg, stop)
