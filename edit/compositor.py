@@ -166,13 +166,13 @@ class Compositor(nn.Module):
             return torch.sigmoid(torch.logit(base) + gate * head)
         a = head[:, :9].unflatten(1, (3, 3))  # [B, 3, 3, H, W]
         if part is None:
-            own = base
+            own = gate * base  # [B, 3, H, W] the whole pixel, weighed by g
             out = base + gate * (torch.einsum("bijhw,bjhw->bihw", a, base) + head[:, 9:])
         else:
             own = part + modification  # [B, 3, H, W] the part's colour in the pixel
             out = base + torch.einsum("bijhw,bjhw->bihw", a, own) + gate * head[:, 9:]
         if self.quadratic is not None:
-            quad = quadratic_features(own if part is not None else gate * base, gate)
+            quad = quadratic_features(own, gate)  # [B, 6, H, W]
             out = out + torch.einsum("ik,bkhw->bihw", self.quadratic, quad)
         return out + (out.clamp(0.0, 1.0) - out).detach()  # clamped, gradients as if not
 

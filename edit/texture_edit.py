@@ -81,10 +81,11 @@ template pixels to the target's (`edit.compositor.fit_shared_transform`). Where 
 painted change (|residual| / |change| <= `fit_max_residual`: a hue turned, a colour painted over
 a part's shades) the edit starts from it, F_dT learns at `fitted_lr_factor` x its rate and the
 UNet at `fitted_compositor_factor` x (frozen by default): from that start, at full rates, they
-fit view K's own template error and carry it to other views as mottling and stray colours. With
-`quadratic_transform` the shared transform has a quadratic term, so a recolouring that is not
-linear in RGB (the figurine's hue turn that turns white stripes pink) needs no per-pixel help. Where it does not (a pattern painted on part of
-the part), the edit starts from no change at full rates, as without the option.
+fit view K's own template error and carry it to other views as mottling and stray colours.
+Where it does not (a pattern painted on part of the part), the edit starts from no change at
+full rates, as without the option. `quadratic_transform`: the shared transform has a quadratic
+term in the part's colour, so a recolouring that is not linear in RGB (the figurine's hue turn
+that also turns white stripes pink) needs no per-pixel help after the fit.
 
 `--w-plain W` (beyond the paper, off by default): the photometric term on view K's crop also on
 I_o + I_m before the compositor, so F_dT makes the change itself in 3D and the compositor refines
@@ -889,9 +890,6 @@ def texture_parts(template, cfg: TextureEditConfig, device):
     return editing, compositor, state, groups
 
 
-PER_PIXEL_GROUPS = ("grid", "mlp", "compositor")  # F_dT and the UNet (not the transform)
-
-
 def scale_learning_rates(trainer, names: tuple[str, ...], factor: float) -> None:
     """Multiplies the learning rates of the trainer's parameter groups `names` by `factor`, now
     and for the rest of their schedules (saved with the optimiser and scheduler: a resumed run
@@ -948,9 +946,9 @@ def texture_steps(
     is the trainer's generator; step(i) is step i of this training (0..cfg.iterations-1).
     feature_geometry: the scene of `template` and `sampler` when it is not the run's template
     (a hybrid edit's `deformed_template`): the semantic masks' feature maps are rendered on it.
-    slow_down: for a fresh (not resumed) edit, (group names, factor) -> multiplies those
-    `PER_PIXEL_GROUPS`' learning rates by the factor (`scale_learning_rates`); with it,
-    `fit_transform` applies."""
+    slow_down: for a fresh (not resumed) edit, (names, factor) -> multiplies the learning rates
+    of those parameter groups ("grid", "mlp": F_dT; "compositor": the UNet) by the factor
+    (`scale_learning_rates`); with it, `fit_transform` applies."""
     from edit.dino import load_dino
     from edit.texture_loss import TextureLoss, sliced_wasserstein
 
