@@ -229,7 +229,8 @@ class TextureEditConfig(LoopOptions):
         "with it: a recolouring that is not one linear map of RGB (a hue turn that lifts greys "
         "to some saturation) carries to the colours of other views (with "
         "--fitted-compositor-factor 0, held-out dB: toycar +0.40 / +0.40, figurine +0.65 / "
-        "-0.13, spot +0.18, avocado -0.05; --no-quadratic-transform: linear only)",
+        "-0.13 / +0.10, spot +0.18 / +0.18, avocado -0.05; --no-quadratic-transform: linear "
+        "only)",
     )
     fit_ridge: float = option(
         1e-4,
