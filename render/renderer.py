@@ -158,11 +158,10 @@ def render_image(
     pixel (its s x s rays' opacities differ by more than EDGE_SPREAD) makes the pixel's mean
     converge slowly with s: those pixels are rendered again with `edge_supersample` t x t rays
     (default 2 s; s or less: off), a few percent of the pixels ("rendered_again" [H, W] bool
-    says which). The channels named in
-    `subpixels` also come unfiltered, as "NAME_subpixels" [s * s, H, W, C]: the s x s images of
-    one ray per pixel, each at its own offset within the pixel (for a non-linear step, such as
-    a texture edit's compositor, that must act on each before the box filter); they are the
-    s x s rays even where the pixel was rendered again."""
+    says which). The channels named in `subpixels` also come unfiltered, as "NAME_subpixels"
+    [s * s, H, W, C]: the s x s images of one ray per pixel, each at its own offset within the
+    pixel (for a non-linear step, such as a texture edit's compositor, that must act on each
+    before the box filter); they are the s x s rays even where the pixel was rendered again."""
     device = device or torch.device("cpu")
     s = int(supersample)
     if s < 1:

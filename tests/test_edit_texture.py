@@ -176,6 +176,17 @@ def test_affine_head_transforms_only_the_parts_share_of_a_rim_pixel():
     assert (whole - out[:, 0]).abs().max() > 0.03
 
 
+def composite_columns(comp, template, g, part):
+    """The compositor on pixels given as columns: I_o and P [N, 3], g [N], I_m = 0 -> [N, 3]."""
+
+    def as_image(x):  # [N, C] -> [1, C, 1, N]
+        return x.T.reshape(1, x.shape[1], 1, x.shape[0])
+
+    image = as_image(template)
+    out = comp(image, torch.zeros_like(image), as_image(g[:, None]), as_image(part))
+    return out[0, :, 0].T
+
+
 def test_the_shared_transform_starts_at_the_least_squares_fit_to_the_target():
     """A target made by one colour transform (the channel permutation of a 120-degree hue turn,
     plus an offset) on the part's pixels: the fit recovers it, and the compositor then renders
@@ -199,11 +210,8 @@ def test_the_shared_transform_starts_at_the_least_squares_fit_to_the_target():
     assert torch.allclose(comp.head.bias[:9].reshape(3, 3), a, atol=1e-4)
     assert torch.allclose(comp.head.bias[9:], b, atol=1e-4)
 
-    def as_image(x, channels=3):  # [N, C] -> [1, C, 1, N]
-        return x.T.reshape(1, channels, 1, n)
-
-    out = comp(as_image(template), torch.zeros(1, 3, 1, n), as_image(g[:, None], 1), as_image(part))
-    assert torch.allclose(out[0, :, 0].T, target.clamp(0, 1), atol=1e-4)
+    out = composite_columns(comp, template, g, part)
+    assert torch.allclose(out, target.clamp(0, 1), atol=1e-4)
     # without the part's share: the transform of the whole pixel, weighed by g
     whole = template + g[:, None] * (template @ a.T + b)
     comp = Compositor(head="affine")
@@ -242,11 +250,8 @@ def test_the_quadratic_term_is_fitted_and_rendered_with_the_parts_share():
     assert torch.allclose(comp.quadratic, q, atol=1e-4)
     assert torch.allclose(comp.head.bias[:9].reshape(3, 3), a, atol=1e-4)
 
-    def as_image(x, channels=3):  # [N, C] -> [1, C, 1, N]
-        return x.T.reshape(1, channels, 1, n)
-
-    out = comp(as_image(template), torch.zeros(1, 3, 1, n), as_image(g[:, None], 1), as_image(part))
-    assert torch.allclose(out[0, :, 0].T, target.clamp(0, 1), atol=1e-4)
+    out = composite_columns(comp, template, g, part)
+    assert torch.allclose(out, target.clamp(0, 1), atol=1e-4)
     linear = Compositor(head="affine")
     assert fit_shared_transform(linear, template, target, g, part, ridge=1e-9).abs().max() > 0.01
     again = Compositor.for_state(comp.state_dict())
