@@ -39,9 +39,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-MESHES = {
-    "spot": Path(__file__).resolve().parents[2] / "shared/data/meshes/spot/spot_triangulated.obj"
-}
+from bench_objects import case_name, synth_source  # noqa: E402
+
 # ours with one option changed: the ablations, and the symmetric prior (beyond the paper)
 VARIANTS = {
     "no_gp": {"w_gp": 0.0},
@@ -70,7 +69,7 @@ def prepare_object(name: str, work: Path, size: int, views: int, fit_iterations:
 
     syn, run = work / "synth", RunDir(work / "run")
     if not (syn / "edits" / "geometric" / "edit.json").is_file():
-        source = {"mesh": MESHES[name]} if name in MESHES else {"procedural": name}
+        source = synth_source(name)
         synthesize(
             SynthConfig(
                 out=syn, views=views, width=size, height=size, edit=["geometric"], **source
@@ -171,7 +170,13 @@ def main() -> int:
     )
     ap.add_argument("--out", type=Path, required=True, help="work and results folder")
     ap.add_argument("--quick", action="store_true", help="toycar only, ours + naive, fewer steps")
-    ap.add_argument("--objects", nargs="+", default=["toycar", "figurine", "spot"])
+    ap.add_argument(
+        "--objects",
+        nargs="+",
+        default=["toycar", "figurine", "spot"],
+        help="toycar, figurine, spot, avocado, or any mesh file (OBJ/GLB/GLTF/PLY; its part "
+        "above the middle plane is stretched), named by its stem",
+    )
     ap.add_argument(
         "--methods",
         nargs="+",
@@ -198,10 +203,11 @@ def main() -> int:
 
     args.out.mkdir(parents=True, exist_ok=True)
     cases = []
-    for obj in args.objects:
+    for source in args.objects:
+        obj = case_name(source)
         t0 = time.perf_counter()
         syn, run, fit = prepare_object(
-            obj, args.out / obj, args.size, args.views, args.fit_iterations
+            source, args.out / obj, args.size, args.views, args.fit_iterations
         )
         print(
             f"[{obj}] template: held-out PSNR {fit.get('heldout_psnr', float('nan')):.2f} dB "

@@ -50,11 +50,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-DATA = Path(__file__).resolve().parents[2] / "shared/data/meshes"
-MESHES = {
-    "spot": DATA / "spot/spot_triangulated.obj",
-    "avocado": DATA / "avocado/avocado.obj",
-}
+from bench_objects import case_name, synth_source  # noqa: E402
+
 VARIANTS = {
     "ours": {},
     "naive": {"method": "naive"},
@@ -80,7 +77,7 @@ def prepare_object(
 
     syn, run = work / "synth", RunDir(work / "run")
     if not (syn / "edits" / "texture" / "edit.json").is_file():
-        source = {"mesh": MESHES[name]} if name in MESHES else {"procedural": name}
+        source = synth_source(name)
         synthesize(
             SynthConfig(out=syn, views=views, width=size, height=size, edit=["texture"], **source),
             progress=False,
@@ -311,12 +308,12 @@ def reference_photo(name: str, out: Path, size: int, backdrop=None) -> tuple[Pat
     from recon.synth import SynthConfig, synthesize
     from render.io import read_image, read_mask, write_image
 
-    syn = out / f"reference_{name}"
+    syn = out / f"reference_{case_name(name)}"
     if not (syn / "cameras.json").is_file():
-        source = {"mesh": MESHES[name]} if name in MESHES else {"procedural": name}
+        source = synth_source(name)
         synthesize(SynthConfig(out=syn, views=8, width=size, height=size, **source), progress=False)
     frame = sorted((syn / "images").glob("*.png"))[1]
-    photo = out / f"reference_{name}.png"
+    photo = out / f"reference_{case_name(name)}.png"
     rgb, alpha = read_image(frame), read_mask(syn / "masks" / frame.name).astype(np.float32)
     write_rgba(photo, rgb, alpha)
     if backdrop is None:
@@ -325,7 +322,7 @@ def reference_photo(name: str, out: Path, size: int, backdrop=None) -> tuple[Pat
     light = np.linspace(0.06, -0.06, h, dtype=np.float32)[:, None, None]
     noise = np.random.default_rng(0).normal(0.0, 0.01, (h, w, 3)).astype(np.float32)
     behind = np.clip(np.asarray(backdrop, np.float32) + light + noise, 0, 1)
-    opaque = out / f"reference_{name}_on_backdrop.png"
+    opaque = out / f"reference_{case_name(name)}_on_backdrop.png"
     write_image(opaque, rgb * alpha[..., None] + behind * (1 - alpha[..., None]))
     return photo, opaque
 
@@ -358,15 +355,16 @@ def reference_color_distances(syn: Path, previews: list[Path], photo: Path) -> d
     }
 
 
-def unaligned(args, obj: str, reference: str) -> dict:
+def unaligned(args, source: str, reference: str) -> dict:
     """Ours with --reference: the object's part (its GT label in the editing view) takes the
     look of the reference photo; CLS distances to the photo before / after on 4 views."""
     from edit.texture_edit import TextureEditConfig, run_texture_edit
     from render.io import read_image, write_image
 
+    obj = case_name(source)
     work = args.out / obj
     syn, run, _ = prepare_object(
-        obj, work, args.size, args.views, args.fit_iterations, not args.no_features, args.fit_set
+        source, work, args.size, args.views, args.fit_iterations, not args.no_features, args.fit_set
     )
     photo, given = reference_photo(reference, args.out, args.size, args.reference_backdrop)
     k = pick_edit_view(run, syn)
@@ -375,7 +373,7 @@ def unaligned(args, obj: str, reference: str) -> dict:
     cfg = TextureEditConfig(previews=4, threads=args.threads, **options)
     if args.iterations:
         cfg.iterations = args.iterations
-    name = f"reference_{reference}{args.tag}"
+    name = f"reference_{case_name(reference)}{args.tag}"
     t0 = time.perf_counter()
     m = run_texture_edit(
         run.root, k, None, name, cfg, region=region, reference=given, progress=False
@@ -386,7 +384,7 @@ def unaligned(args, obj: str, reference: str) -> dict:
     colors = reference_color_distances(syn, previews, photo)
     case = {
         "object": obj,
-        "reference": reference,
+        "reference": case_name(reference),
         "edit_view": k,
         "cls_distance_before": m["preview_cls_distance_before"],
         "cls_distance_after": m["preview_cls_distance_after"],
@@ -412,7 +410,13 @@ def main() -> int:
         action="store_true",
         help="toycar only, fewer steps, ours + naive (unless --objects / --methods are given)",
     )
-    ap.add_argument("--objects", nargs="+", default=None, help="default: toycar figurine spot")
+    ap.add_argument(
+        "--objects",
+        nargs="+",
+        default=None,
+        help="default: toycar figurine spot; also avocado, or any mesh file with a UV texture "
+        "(OBJ/GLB/GLTF; its part above the middle plane is recoloured), named by its stem",
+    )
     ap.add_argument(
         "--methods",
         nargs="+",
@@ -451,7 +455,7 @@ def main() -> int:
     ap.add_argument(
         "--reference",
         help="unaligned case instead: the objects' part takes the look of a render of this "
-        "object (e.g. avocado); before/after previews and CLS distances",
+        "object (e.g. avocado, or a mesh file); before/after previews and CLS distances",
     )
     ap.add_argument(
         "--reference-backdrop",
@@ -487,11 +491,12 @@ def main() -> int:
     from render.io import write_image, write_json
 
     cases = []
-    for obj in args.objects:
+    for source in args.objects:
+        obj = case_name(source)
         t0 = time.perf_counter()
         work = args.out / obj
         syn, run, fit = prepare_object(
-            obj,
+            source,
             work,
             args.size,
             args.views,

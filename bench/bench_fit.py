@@ -6,6 +6,10 @@ Cases (each reconstructed once into --out/CASE/run the way a user would, then re
   figurine  `sine synth --procedural figurine` (36 x 256x256) -> `sine recon`
   dinosaur  `sine recon` of ../shared/data/oxford-dinosaur (SfM; ~2 min the first time)
   temple    `sine recon` of ../shared/data/middlebury-templeSparseRing (known poses)
+  avocado   `sine synth` of the shared avocado mesh (36 x 256x256) -> `sine recon`
+  a mesh file (OBJ/GLB/GLTF/PLY)   `sine synth --mesh` of it (36 x 256x256) -> `sine recon`
+  a capture folder (photos, transforms.json, COLMAP, a calibrated ring)   `sine recon` of it
+  (both named by their file or folder name)
 
 Each variant is a set of `sine fit` options (`--variant NAME:key=value,key=value`; `native=0`
 runs the torch hash-grid path instead of the C++ kernels; `code=DIR` imports the project from
@@ -34,34 +38,48 @@ import sys
 import time
 from pathlib import Path
 
+from bench_objects import case_name, is_mesh_path, synth_source
+
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
 SINE = [sys.executable, "-m", "sine_cli"]
 
 
-def synth_case(case: str, work: Path) -> list[str]:
-    """`sine synth` arguments of a synthetic case."""
+CAPTURES = {
+    "dinosaur": SHARED / "oxford-dinosaur",
+    "temple": SHARED / "middlebury-templeSparseRing",
+}
+
+
+def synth_case(case: str) -> list[str]:
+    """`sine synth` arguments of a synthetic case (a built-in object or a mesh file)."""
     common = ["--views", "36", "--width", "256", "--height", "256", "--quiet"]
-    if case == "spot":
-        return ["--mesh", str(SHARED / "meshes" / "spot" / "spot_triangulated.obj"), *common]
-    return ["--procedural", case, *common]
+    source = synth_source(case)
+    if "mesh" in source:
+        return ["--mesh", str(source["mesh"]), *common]
+    return ["--procedural", source["procedural"], *common]
+
+
+def case_label(case: str) -> str:
+    """The case's name in tables and folders (a capture folder's or a mesh file's name)."""
+    return Path(case).name if Path(case).is_dir() else case_name(case)
 
 
 def prepare(case: str, out: Path) -> Path:
     """The case's reconstructed run (made once)."""
-    run = out / case / "run"
+    run = out / case_label(case) / "run"
     if (run / "proxy_mesh.ply").is_file():
         return run
-    if case in ("spot", "toycar", "figurine"):
-        capture = out / case / "synth"
-        cmd = [*SINE, "synth", "--out", str(capture), *synth_case(case, out)]
+    if case in CAPTURES:
+        capture = CAPTURES[case]
+    elif Path(case).is_dir():
+        capture = Path(case).resolve()
+    elif case in ("spot", "toycar", "figurine", "avocado") or is_mesh_path(case):
+        capture = out / case_label(case) / "synth"
+        cmd = [*SINE, "synth", "--out", str(capture), *synth_case(case)]
         subprocess.run(cmd, check=True, cwd=ROOT)
-    elif case == "dinosaur":
-        capture = SHARED / "oxford-dinosaur"
-    elif case == "temple":
-        capture = SHARED / "middlebury-templeSparseRing"
     else:
-        sys.exit(f"unknown case {case!r}")
+        sys.exit(f"unknown case {case!r}: a built-in case, a mesh file or a capture folder")
     subprocess.run([*SINE, "recon", str(capture), "--out", str(run)], check=True, cwd=ROOT)
     return run
 
@@ -112,7 +130,11 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("--out", default="bench/out/fit", help="work and results folder")
-    ap.add_argument("--cases", default="spot", help="comma-separated cases (see above)")
+    ap.add_argument(
+        "--cases",
+        default="spot",
+        help="comma-separated cases (see above): built-in names, mesh files, capture folders",
+    )
     ap.add_argument(
         "--keep", action="store_true", help="keep each variant's run (CASE/run_NAME) to look at"
     )
@@ -133,8 +155,8 @@ def main() -> None:
     results_path = out / "results.json"
     results = json.loads(results_path.read_text()) if results_path.is_file() else {"cases": []}
     rows = []
-    for case in args.cases.split(","):
-        base = prepare(case, out)
+    for source in args.cases.split(","):
+        base, case = prepare(source, out), case_label(source)
         for name, opts in variants:
             run = out / case / f"run_{name}"
             if run.exists():

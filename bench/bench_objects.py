@@ -1,0 +1,40 @@
+"""Which object a bench case synthesises: a shared mesh by name, any mesh file, or a procedural one.
+
+spot, avocado          the textured meshes of ../shared/data/meshes
+toycar, figurine       `recon.procedural` objects
+path/to/mesh.obj       any mesh `sine synth --mesh` reads (OBJ/GLB/GLTF/PLY); the case is
+                       named after the file's stem (its folder in the bench's --out)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+SHARED_MESHES = Path(__file__).resolve().parents[2] / "shared/data/meshes"
+MESHES = {
+    "spot": SHARED_MESHES / "spot/spot_triangulated.obj",
+    "avocado": SHARED_MESHES / "avocado/avocado.obj",
+}
+MESH_SUFFIXES = (".obj", ".glb", ".gltf", ".ply", ".off", ".stl")
+
+
+def is_mesh_path(name: str) -> bool:
+    """Whether a case name is a mesh file rather than a built-in object."""
+    return Path(name).suffix.lower() in MESH_SUFFIXES
+
+
+def case_name(name: str) -> str:
+    """The case's name in tables and folders: a mesh file's stem, else the name itself."""
+    return Path(name).stem if is_mesh_path(name) else name
+
+
+def synth_source(name: str) -> dict:
+    """The `SynthConfig` source of a case: {"mesh": path} or {"procedural": name}."""
+    if is_mesh_path(name):
+        path = Path(name).expanduser().resolve()
+        if not path.is_file():
+            raise SystemExit(f"mesh {name} does not exist")
+        return {"mesh": path}
+    if name in MESHES:
+        return {"mesh": MESHES[name]}
+    return {"procedural": name}
