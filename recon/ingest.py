@@ -653,8 +653,10 @@ def _ingest_view(
         K_cv = cam.K.copy()  # OpenCV puts pixel centres at integers, we at +0.5
         K_cv[:2, 2] -= 0.5
         dist = cam.distortion
-        rgb = cv2.undistort(rgb, K_cv, dist, None, K_cv)
         maps = cv2.initUndistortRectifyMap(K_cv, dist, None, K_cv, (w, h), cv2.CV_32FC1)
+        # Lanczos, not bilinear: sub-pixel shifts must not soften the photo (recon.poses)
+        rgb = cv2.remap(rgb, *maps, cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE)
+        rgb = np.clip(rgb, 0.0, 1.0)
         if mask is not None:
             mask = cv2.remap(mask.astype(np.uint8), *maps, cv2.INTER_NEAREST) > 0
         if depth is not None:

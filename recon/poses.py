@@ -464,9 +464,14 @@ def undistort_depth_in_place(path: Path, camera: Camera, dist: np.ndarray) -> No
 
 
 def undistort_in_place(paths: list[Path], camera: Camera, dist: np.ndarray, nearest: bool) -> None:
-    """Undistorts images/masks with the pinhole K of `camera` kept (pixel centres at +0.5)."""
+    """Undistorts images/masks with the pinhole K of `camera` kept (pixel centres at +0.5).
+
+    Images are resampled with Lanczos (8 x 8 taps): bilinear interpolation at the sub-pixel
+    shifts of a mild distortion softens the photos (the oxford-dinosaur's texture lost 23 % of
+    its Laplacian energy, Lanczos 2.5 %), and the template learns from, and is scored against,
+    the softened photos."""
     map1, map2 = _undistort_maps(camera, dist)
-    interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+    interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LANCZOS4
     for path in paths:
         raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         out = cv2.remap(raw, map1, map2, interp, borderMode=cv2.BORDER_REPLICATE)

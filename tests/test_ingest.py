@@ -521,3 +521,47 @@ def test_cli_help_lists_every_option(capsys):
     for flag in ("--out", "--width", "--frames", "--holdout-every", "--format", "--ignore-poses",
                  "--masks", "--background-color", "--force"):  # fmt: skip
         assert flag in out
+
+
+def high_frequency_energy(image: np.ndarray) -> float:
+    """Mean squared Laplacian of the image's inner part (no border effects)."""
+    return float((cv2.Laplacian(image.astype(np.float32), cv2.CV_32F)[8:-8, 8:-8] ** 2).mean())
+
+
+def test_undistortion_keeps_the_photos_fine_texture(tmp_path):
+    """A mild distortion shifts pixels by fractions of a pixel (here 0.4 on average); resampling
+    must not blur the photo (of a fine texture's Laplacian energy bilinear keeps 62 %, Lanczos
+    94 %), in both places images are undistorted: at ingest (the capture's distortion) and after
+    SfM estimated one (`undistort_in_place`)."""
+    from recon.poses import undistort_in_place
+
+    noise = np.random.default_rng(0).uniform(0.2, 0.8, (96, 128)).astype(np.float32)
+    noise = np.repeat(cv2.GaussianBlur(noise, (0, 0), 0.6)[..., None], 3, axis=2)
+    cam = ring_cameras(1, 128, 96)[0]
+    dist = np.array([0.05, 0.0, 0.0, 0.0])
+
+    path = tmp_path / "photo.png"
+    write_image(path, noise)
+    undistort_in_place([path], cam, dist, nearest=False)
+    after_sfm = read_image(path)
+    assert not np.allclose(after_sfm, read_image_quantised(noise))  # the pixels did move
+    assert high_frequency_energy(after_sfm) > 0.85 * high_frequency_energy(noise)
+
+    root = tmp_path / "cap"
+    (root / "images").mkdir(parents=True)
+    frames = []
+    for i in range(3):
+        write_image(root / "images" / f"n{i}.png", noise)
+        frames.append(f"images/n{i}.png")
+    cams = [cam.replace(distortion=dist)] * 3
+    (root / "transforms.json").write_text(json.dumps(C.cameras_to_transforms(cams, frames)))
+    run = RunDir(tmp_path / "run")
+    assert ingest_capture(root, run, IngestConfig(width=128))["undistorted"] == 3
+    ingested = read_image(run.image_path("n0.png"))
+    assert high_frequency_energy(ingested) > 0.85 * high_frequency_energy(noise)
+    assert ingested.min() >= 0.0 and ingested.max() <= 1.0
+
+
+def read_image_quantised(image: np.ndarray) -> np.ndarray:
+    """The image as an 8-bit PNG stores it."""
+    return np.round(image * 255.0) / 255.0
