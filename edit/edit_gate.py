@@ -45,28 +45,50 @@ class EditGate(nn.Module):
         the part's own surface, its voxels lose the vote, and the stop would punch a hole there
         (the template's colour as a dot in the edit)."""
         voxel = 2 * self.bound / resolution
+        shape = (resolution,) * 3
 
-        def counts(pts: np.ndarray) -> np.ndarray:  # [z, y, x] points per voxel
+        def counts(pts: np.ndarray) -> dict[int, int]:  # flat [z, y, x] voxel -> points in it
             ijk = np.floor((np.asarray(pts).reshape(-1, 3) + self.bound) / voxel).astype(int)
             ijk = np.clip(ijk, 0, resolution - 1)
-            flat = np.ravel_multi_index((ijk[:, 2], ijk[:, 1], ijk[:, 0]), (resolution,) * 3)
-            return np.bincount(flat, minlength=resolution**3).reshape((resolution,) * 3)
+            keys, n = np.unique(
+                np.ravel_multi_index((ijk[:, 2], ijk[:, 1], ijk[:, 0]), shape), return_counts=True
+            )
+            return dict(zip(keys.tolist(), n.tolist(), strict=True))
 
         inside = counts(points)
-        outside = counts(others) if others is not None else np.zeros_like(inside)
-        occupied = inside > outside
+        outside = counts(others) if others is not None else {}
+        voted = np.array([k for k, n in inside.items() if n > outside.get(k, 0)], np.int64)
+        if len(voted) == 0:  # no part: no gating
+            self.grid = torch.ones(1, 1, *shape, device=self.grid.device)
+            return
+        # Everything below happens in a box around the part: w is 0 farther than `outer` from it,
+        # and a neighbour farther than 2 `outer` (+ 2 voxels) cannot stop it (the result is the
+        # whole grid's; a finer grid costs the part's box, not the whole cube).
+        zyx = np.stack(np.unravel_index(voted, shape), axis=1)  # [V, 3]
+        margin = int(np.ceil(2 * outer / voxel)) + 2
+        lo = np.maximum(zyx.min(axis=0) - margin, 0)
+        hi = np.minimum(zyx.max(axis=0) + margin + 1, resolution)
+        box = tuple(slice(a, b) for a, b in zip(lo, hi, strict=True))
+
+        def in_box(keys) -> np.ndarray:  # [z, y, x] bool of the box: the voxels `keys`
+            grid = np.zeros(tuple(hi - lo), bool)
+            zyx = np.stack(np.unravel_index(np.asarray(keys, np.int64), shape), axis=1) - lo
+            zyx = zyx[np.all((zyx >= 0) & (zyx < hi - lo), axis=1)]  # [K, 3] in the box
+            grid[tuple(zyx.T)] = True
+            return grid
+
+        occupied = in_box(voted)
         if others is not None:  # the part's holes are the part's
             occupied |= ndimage.binary_closing(occupied, np.ones((3, 3, 3), bool))
-        if not occupied.any():  # no part: no gating
-            self.grid = torch.ones(1, 1, *occupied.shape, device=self.grid.device)
-            return
         dist = ndimage.distance_transform_edt(~occupied) * voxel
         w = np.clip((outer - dist) / max(outer - inner, 1e-6), 0.0, 1.0)
-        other = (outside > 0) & ~occupied
+        other = in_box(list(outside)) & ~occupied
         if other.any():  # nearer the neighbours' surface than the part's: 0
             to_other = ndimage.distance_transform_edt(~other) * voxel
             w *= np.clip((to_other - dist) / voxel + 0.5, 0.0, 1.0)
-        self.grid = torch.from_numpy(w.astype(np.float32))[None, None].to(self.grid.device)
+        grid = np.zeros(shape, np.float32)
+        grid[box] = w
+        self.grid = torch.from_numpy(grid)[None, None].to(self.grid.device)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         g = (x / self.bound).clamp(-1, 1).view(1, -1, 1, 1, 3)  # grid_sample order: x, y, z
