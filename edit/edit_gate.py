@@ -79,7 +79,8 @@ class EditGate(nn.Module):
 
         occupied = in_box(voted)
         if others is not None:  # the part's holes are the part's
-            occupied |= ndimage.binary_closing(occupied, np.ones((3, 3, 3), bool))
+            reach = max(1, round(resolution / 128))  # the closing's size in run units, as at 128
+            occupied |= ndimage.binary_closing(occupied, np.ones((3, 3, 3), bool), iterations=reach)
         dist = ndimage.distance_transform_edt(~occupied) * voxel
         w = np.clip((outer - dist) / max(outer - inner, 1e-6), 0.0, 1.0)
         other = in_box(list(outside)) & ~occupied

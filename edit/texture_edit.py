@@ -149,6 +149,9 @@ METHODS = ("ours", "naive")
 TEXTURE_INPUTS = (*EDIT_INPUTS, "features/field.pt")
 
 
+GATE_RESOLUTION_AUTO = (128, 384)  # --gate-resolution 0: the pixel-matched one, clamped here
+
+
 @dataclass
 class TextureEditConfig(LoopOptions):
     """Options of a texture edit (`sine edit --mode texture`). Options named as the geometry
@@ -288,7 +291,16 @@ class TextureEditConfig(LoopOptions):
     gate_weight: float = option(
         0.05, "gate: built from editable pixels' samples of at least this weight", low=0
     )
-    gate_resolution: int = option(128, "gate: voxels per side over [-1, 1]^3", low=2)
+    gate_resolution: int = option(
+        0,
+        "gate: voxels per side over [-1, 1]^3; 0: one voxel per pixel's footprint at the "
+        "object's centre (the training cameras' median, as the template's finest level), "
+        f"within [{GATE_RESOLUTION_AUTO[0]}, {GATE_RESOLUTION_AUTO[1]}]: the part's edge in "
+        "every render is as sharp as the pixels (the oxford-dinosaur's pixel is 1/370 of "
+        "the cube: a painted patch in view K against the target, 25.6 dB at 128 voxels, "
+        "30.2 at 370)",
+        low=0,
+    )
     gate_vote: bool = option(
         True,
         "gate, with the semantic masks: a voxel is the part's where more of the views' editable "
@@ -391,6 +403,18 @@ class TextureEditConfig(LoopOptions):
 
 
 RUNTIME_KEYS = (*LOOP_RUNTIME_KEYS, "previews", "chunk")
+
+
+def gate_resolution(cfg: TextureEditConfig, cameras) -> int:
+    """Voxels per side of the gate: `cfg.gate_resolution`, or 0 -> one per pixel footprint of
+    the cameras (`recon.fit.pixel_resolution` over the gate's [-1, 1]^3) within
+    GATE_RESOLUTION_AUTO (finer costs the distance transforms' time and memory, cubed)."""
+    from recon.fit import pixel_resolution
+
+    if cfg.gate_resolution:
+        return max(2, cfg.gate_resolution)
+    return int(np.clip(pixel_resolution(cameras), *GATE_RESOLUTION_AUTO))
+
 
 # Options added after edits were recorded whose default is not what those edits did: a run
 # recorded without them counts as having had these values (so it is redone, not reused).
@@ -769,6 +793,8 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
     }
     if cfg.method == "ours":
         metrics["mask_source"] = mask_source
+        if cfg.gate:
+            metrics["gate_resolution"] = int(editing.gate.grid.shape[-1])
     if setup.transform_fit is not None:
         metrics["transform_fit"] = setup.transform_fit
     if setup.photo is not None:
@@ -1001,7 +1027,7 @@ def texture_steps(
         if cfg.gate_vote and mask_source == "features":
             others = torch.cat([surface(v, False) for v in views]).cpu().numpy()
         editing.gate.set_from_points(
-            points, cfg.gate_inner, cfg.gate_outer, cfg.gate_resolution, others
+            points, cfg.gate_inner, cfg.gate_outer, gate_resolution(cfg, train), others
         )
 
     def with_region(view: ViewSamples) -> ViewSamples:

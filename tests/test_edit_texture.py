@@ -271,6 +271,23 @@ def test_the_parts_share_is_used_by_the_affine_head_with_the_gate_only():
     assert not uses_part_colour(TextureEditConfig(part_colour=False))
 
 
+def test_the_gate_has_one_voxel_per_pixel_footprint_by_default():
+    """Cameras 4 units from the centre with a focal length of 400 px see 0.01 units per pixel:
+    over the gate's [-1, 1]^3 that is 200 voxels a side; coarser cameras get the floor of 128,
+    finer ones the ceiling of 384; an explicit resolution wins."""
+    from edit.texture_edit import GATE_RESOLUTION_AUTO, gate_resolution
+
+    def cameras(focal):
+        return [Camera(64, 64, focal, focal, 32, 32, look_at([4.0, 0.0, 0.0], [0.0] * 3))]
+
+    auto = TextureEditConfig()
+    assert auto.gate_resolution == 0 and GATE_RESOLUTION_AUTO == (128, 384)
+    assert gate_resolution(auto, cameras(400.0)) == 200
+    assert gate_resolution(auto, cameras(100.0)) == 128
+    assert gate_resolution(auto, cameras(2000.0)) == 384
+    assert gate_resolution(TextureEditConfig(gate_resolution=96), cameras(400.0)) == 96
+
+
 def test_affine_head_shared_transform_has_its_own_learning_rate():
     from edit.texture_edit import texture_parts
 
