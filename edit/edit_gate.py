@@ -41,9 +41,10 @@ class EditGate(nn.Module):
         voxel of `others` is nearer than the part's: the part's own points outvote the few
         that one view's mask wrongly calls the part, and the gate stops at the neighbours'
         surface instead of spreading `outer` over it. A voxel the part's voxels enclose (a
-        binary closing, 3 x 3 x 3) is the part's too: where a few views' masks miss a spot of
-        the part's own surface, its voxels lose the vote, and the stop would punch a hole there
-        (the template's colour as a dot in the edit)."""
+        binary closing, 3 x 3 x 3 at 128 voxels a side, its reach the same in run units on a
+        finer grid) is the part's too: where a few views' masks miss a spot of the part's own
+        surface, its voxels lose the vote, and the stop would punch a hole there (the
+        template's colour as a dot in the edit)."""
         voxel = 2 * self.bound / resolution
         shape = (resolution,) * 3
 
