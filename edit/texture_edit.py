@@ -298,7 +298,7 @@ class TextureEditConfig(LoopOptions):
         f"within [{GATE_RESOLUTION_AUTO[0]}, {GATE_RESOLUTION_AUTO[1]}]: the part's edge in "
         "every render is as sharp as the pixels (the oxford-dinosaur's pixel is 1/370 of "
         "the cube: a painted patch in view K against the target, 25.6 dB at 128 voxels, "
-        "30.2 at 370)",
+        "30.6 at 370)",
         low=0,
     )
     gate_vote: bool = option(
