@@ -515,6 +515,26 @@ def test_edit_gate_vote_keeps_a_hole_the_part_encloses():
     assert gate(x).tolist() == [1.0, 1.0, 0.0]
 
 
+def test_edit_gate_closes_the_same_hole_on_a_finer_grid():
+    """The hole above (1/32 of a unit square, one voxel at 64) is 4 x 4 voxels at 256: the
+    closing keeps its reach in run units (2 voxels at 256), so the part keeps it there too;
+    the neighbour's patch 0.06 away stays shut."""
+    from edit.edit_gate import EditGate
+
+    grid = np.linspace(0.0, 0.3, 121)
+    xs, ys = np.meshgrid(grid, grid)
+    part = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1)
+    in_hole = np.all((part[:, :2] >= 0.125) & (part[:, :2] < 0.125 + 2.0 / 64), axis=1)
+    neighbour = part[~in_hole][:2000].copy()
+    neighbour[:, 0] = 0.36 + 0.8 * neighbour[:, 0]
+    gate = EditGate()
+    others = np.concatenate([part[in_hole], neighbour])
+    gate.set_from_points(part[~in_hole], 0.02, 0.05, 256, others=others)
+    voxel = 2.0 / 256
+    x = torch.tensor([[0.140625, 0.140625, voxel / 2], [0.45, 0.1, voxel / 2]])
+    assert gate(x).tolist() == [1.0, 0.0]
+
+
 def test_an_identity_edit_renders_the_template_exactly_in_the_fit_band(tiny_fitted_run):
     """Sampled in the template fit's band (the default: band_width None), an editing field
     that moves nothing renders the template's pixels; a wider band samples other points, so
