@@ -38,7 +38,7 @@ import sys
 import time
 from pathlib import Path
 
-from bench_objects import case_name, is_mesh_path, synth_source
+from bench_objects import case_name, synth_source
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
@@ -74,12 +74,11 @@ def prepare(case: str, out: Path) -> Path:
         capture = CAPTURES[case]
     elif Path(case).is_dir():
         capture = Path(case).resolve()
-    elif case in ("spot", "toycar", "figurine", "avocado") or is_mesh_path(case):
+    else:  # a shared mesh, a mesh file or a procedural object (`sine synth` names the known ones)
         capture = out / case_label(case) / "synth"
         cmd = [*SINE, "synth", "--out", str(capture), *synth_case(case)]
-        subprocess.run(cmd, check=True, cwd=ROOT)
-    else:
-        sys.exit(f"unknown case {case!r}: a built-in case, a mesh file or a capture folder")
+        if subprocess.run(cmd, cwd=ROOT).returncode:
+            sys.exit(f"case {case!r}: not a built-in case, a mesh file or a capture folder")
     subprocess.run([*SINE, "recon", str(capture), "--out", str(run)], check=True, cwd=ROOT)
     return run
 
