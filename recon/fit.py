@@ -32,7 +32,7 @@ import torch
 from recon.proxy_mesh import write_mesh
 from recon.rundir import RunDir
 from recon.selfcheck import require_trusted_poses
-from recon.training import RUNTIME_KEYS, LoopOptions, Trainer, loop_options
+from recon.training import RUNTIME_KEYS, LoopOptions, Trainer, exponential_decay, loop_options
 from render import volume
 from render.configs import from_json, option, to_dict, to_json, validate
 from render.device import pick_device, torch_threads
@@ -54,10 +54,12 @@ from render.template_field import Background, TemplateField, TemplateFieldConfig
 
 # What `--preset` sets (options given explicitly win). Timings: 2 cores, 36 views of 256 px.
 PRESETS: dict[str, dict[str, int]] = {
-    "fast": {"iterations": 300, "batch_rays": 1024, "log2_table": 17},  # ~30 s: a first look
-    "default": {"iterations": 1500, "batch_rays": 2048, "log2_table": 17},  # <= 5 min
+    # ~30 s: a first look
+    "fast": {"iterations": 300, "batch_rays": 1024, "log2_table": 17, "detail_steps": 300},
+    # <= 5 min
+    "default": {"iterations": 1500, "batch_rays": 2048, "log2_table": 17, "detail_steps": 1500},
     # 2^19 rows per level: fewer hash collisions (spot +0.5 dB at 1500 steps), ~15 % slower
-    "quality": {"iterations": 3500, "batch_rays": 4096, "log2_table": 19},  # <= 20 min
+    "quality": {"iterations": 3500, "batch_rays": 4096, "log2_table": 19, "detail_steps": 3000},
 }
 
 
@@ -67,6 +69,7 @@ START_BAND = 3.0  # the band before the first refinement, in final band widths, 
 # recon's depth was the visual hull's alone (bench/RESULTS.md "The start band by proxy vertex")
 EDGE_SUPERSAMPLE = 2  # rays per side on the masks' edge pixels when the masks are the capture's
 FALLBACK_MAX_RESOLUTION = 512  # --max-resolution without views to match it to
+DETAIL_BASE_RESOLUTION = 64  # the colour-detail grid's coarsest level (cells per axis)
 
 
 def masks_from_capture(report: dict) -> bool:
@@ -136,6 +139,21 @@ class FitConfig(LoopOptions):
     levels: int = option(16, "hash-grid levels", low=1, high=32)
     density_hidden: int = option(
         128, "hidden width of the density MLP (one hidden layer after the hash grid)", low=1
+    )
+    detail_steps: int | None = option(
+        None,
+        "steps of the colour-detail phase after the main steps: the density frozen, each "
+        "training ray's sample weights cached once, a second hash grid read only by the colour "
+        "learns the fine texture on many rays per step (recon/colour_detail.py; 0: off; None: "
+        "the preset's: fast 300, default 1500, quality 3000)",
+        low=0,
+    )
+    detail_batch_rays: int = option(4096, "rays per colour-detail step", low=1)
+    detail_levels: int = option(
+        8, "levels of the colour-detail grid (from 64 cells to --max-resolution)", low=1, high=32
+    )
+    detail_log2_table: int = option(
+        18, "log2 of the colour-detail grid's hash-table rows per level", low=4, high=24
     )
     max_resolution: int | None = option(
         None,
@@ -536,6 +554,14 @@ def field_config(cfg: FitConfig, n_views: int = 0) -> TemplateFieldConfig:
     grid = HashGridConfig(
         n_levels=cfg.levels, log2_table=cfg.log2_table, max_resolution=cfg.max_resolution
     )
+    detail = None
+    if cfg.detail_steps:
+        detail = HashGridConfig(
+            n_levels=cfg.detail_levels,
+            log2_table=cfg.detail_log2_table,
+            base_resolution=min(DETAIL_BASE_RESOLUTION, cfg.max_resolution),
+            max_resolution=cfg.max_resolution,
+        )
     views = n_views if cfg.appearance_dim else 0
     return TemplateFieldConfig(
         grid=grid,
@@ -543,6 +569,7 @@ def field_config(cfg: FitConfig, n_views: int = 0) -> TemplateFieldConfig:
         sh_degree=cfg.sh_degree,
         appearance_dim=cfg.appearance_dim,
         appearance_views=views,
+        detail=detail,
     )
 
 
@@ -704,9 +731,47 @@ def evaluate(
 
 
 # ---- training ---------------------------------------------------------------------------------
+def _train_detail(
+    cfg: FitConfig, trainer, field, sampler, pool, background, behind_capture, codes, stop_at
+) -> dict:
+    """The colour-detail phase (recon/colour_detail.py) on the frozen main field: the training
+    rays' samples cached, then the detail branch's steps up to the trainer's last step.
+    Returns its statistics for metrics.json."""
+    from recon.colour_detail import build_detail_cache, detail_rays, detail_step
+
+    t_cache = time.perf_counter()
+    for p in field.parameters():
+        p.requires_grad_(False)
+    for p in (*field.detail_grid.parameters(), *field.detail_net.parameters()):
+        p.requires_grad_(True)
+    # the same rays on a resume: their own generator, not the loop's
+    rays = detail_rays(pool, cfg.train_supersample > 1, torch.Generator().manual_seed(cfg.seed))
+    behind = background().detach().expand(len(rays), 3)
+    if behind_capture:  # outside the masks, the captured pixel itself (as in the main steps)
+        behind = torch.where(pool.mask[rays, None] < 0.5, pool.rgb[rays], behind)
+    view_codes = codes.detach() if cfg.appearance_dim else None
+    cache = build_detail_cache(field, sampler, pool, rays, behind, view_codes, cfg.eval_chunk)
+    cache_seconds = time.perf_counter() - t_cache
+    trainer.run(
+        lambda i: detail_step(field, cache, cfg.detail_batch_rays, trainer.generator), stop_at
+    )
+    field.eval()
+    return {
+        "detail_steps": cfg.detail_steps,
+        "detail_cached_rays": len(cache),
+        "detail_samples_per_ray": len(cache.points) / max(len(cache), 1),
+        "detail_cache_seconds": cache_seconds,
+    }
+
+
 # Options added after fits were recorded whose default is not what those fits did: a run
 # recorded without them counts as having had these values (so it is fitted again, not reused).
-RECORDED_BEFORE = {"average_window": 0.0, "refine_rounds": 1, "band_width_start": 0.04}
+RECORDED_BEFORE = {
+    "average_window": 0.0,
+    "refine_rounds": 1,
+    "band_width_start": 0.04,
+    "detail_steps": 0,
+}
 
 # Settings that do not change the result: a checkpoint made with other values still resumes.
 _RUNTIME_KEYS = RUNTIME_KEYS + (
@@ -751,7 +816,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         "fit",
         to_dict(cfg),
         _RUNTIME_KEYS,
-        **loop_options(cfg),
+        **{**loop_options(cfg), "iterations": cfg.iterations + cfg.detail_steps},
         force=force,
         progress=progress,
         advice="lower learning rates (e.g. half of --lr-grid and --lr-mlp)",
@@ -805,20 +870,25 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         )
     if cfg.appearance_dim:
         groups.append({"params": [codes], "lr": cfg.lr_mlp, "name": "appearance"})
+    # the main steps decay over cfg.iterations; the detail branch's (no gradient before) after
+    main_decay = exponential_decay(cfg.lr_final_factor, cfg.iterations)
+    detail_decay = exponential_decay(cfg.lr_final_factor, cfg.detail_steps)
+    schedules = {group["name"]: main_decay for group in groups}
+    detail_groups = field.detail_param_groups(cfg.lr_grid, cfg.lr_mlp)
+    for group in detail_groups:
+        schedules[group["name"]] = lambda i: detail_decay(max(0, i - cfg.iterations))
+    phases = {"main_seconds": None}  # the main steps' training time, once they are done
     state = {
         "field": field,
         "background": background,
         "ray_errors": pool.errors,
         "codes": codes,
         "proxy": proxy_state,
+        "phases": phases,
     }
     if averaged is not None:
         state["averaged"] = averaged
-    trainer.start(
-        state,
-        groups,
-        lr_final_factor=cfg.lr_final_factor,
-    )
+    trainer.start(state, groups + detail_groups, schedules)
     generator = trainer.generator
     selector = RaySelector(pool, cfg.error_sampling, generator)
 
@@ -899,6 +969,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         return terms
 
     field.train()
+    main_end = cfg.iterations
     for refine_at in refine_steps[refinements_done(proxy_state) :]:
         leg_end = refine_at if stop_at is None else min(stop_at, refine_at)
         trainer.run(step, leg_end)
@@ -920,17 +991,28 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         proxy_state.update(stats, refined=True, rounds=rounds)
         trainer.checkpoint()  # the refined proxy and the rays cast against it go together
         field.train()
-    if not trainer.run(step, stop_at):  # stopped early on purpose
-        return {"step": trainer.step}
-    if average_from is not None and trainer.step > average_from:  # the last step's weights too
-        averaged.update_parameters(field)
-        with torch.no_grad():
-            for weights, average in zip(
-                field.parameters(), averaged.module.parameters(), strict=True
-            ):
-                weights.copy_(average)
+    if trainer.step < main_end:
+        trainer.run(step, main_end if stop_at is None else min(stop_at, main_end))
+        if trainer.step < main_end:  # stopped early on purpose
+            return {"step": trainer.step}
+    if trainer.step == main_end:  # the main steps' end (resumed here: not done yet)
+        phases["main_seconds"] = trainer.seconds
+        if average_from is not None and main_end > average_from:  # the last step's weights too
+            averaged.update_parameters(field)
+            with torch.no_grad():
+                for weights, average in zip(
+                    field.parameters(), averaged.module.parameters(), strict=True
+                ):
+                    weights.copy_(average)
     if cfg.appearance_dim:
         store_appearance(field, codes.detach(), [cam for cam, _, _ in train_views])
+    detail_stats = {}
+    if cfg.detail_steps:
+        detail_stats = _train_detail(
+            cfg, trainer, field, sampler, pool, background, behind_capture, codes, stop_at
+        )
+        if trainer.step < trainer.iterations:  # stopped early on purpose
+            return {"step": trainer.step}
     for entry in trainer.log:
         entry["psnr"] = psnr_of_mse(entry["rgb"])
 
@@ -955,11 +1037,19 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         cfg.previews,
         cfg.supersample,
     )
-    rays_per_second = trainer.step * cfg.batch_rays / max(trainer.seconds, 1e-9)
+    main_seconds = phases["main_seconds"]
+    rays_per_second = main_end * cfg.batch_rays / max(main_seconds, 1e-9)
+    if detail_stats:
+        detail_seconds = trainer.seconds - main_seconds
+        detail_stats["detail_seconds"] = detail_seconds
+        rate = cfg.detail_steps * cfg.detail_batch_rays / max(detail_seconds, 1e-9)
+        detail_stats["detail_rays_per_second"] = rate
     metrics.update(
         {
-            "iterations": trainer.step,
+            "iterations": main_end,
             "train_seconds": trainer.seconds,
+            "main_seconds": main_seconds,
+            **detail_stats,
             "eval_seconds": time.perf_counter() - t_eval,
             "total_seconds": time.perf_counter() - t_start,
             "rays_per_second": rays_per_second,

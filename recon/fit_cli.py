@@ -40,8 +40,11 @@ def run(args: argparse.Namespace) -> int:
             "--force to redo"
         )
         return 0
+    detail = ""
+    if metrics.get("detail_steps"):
+        detail = f" + {metrics['detail_steps']} colour-detail steps"
     print(
-        f"fit: {metrics['iterations']} steps in {metrics['train_seconds']:.1f} s "
+        f"fit: {metrics['iterations']} steps{detail} in {metrics['train_seconds']:.1f} s "
         f"({metrics['rays_per_second']:.0f} rays/s x {metrics['samples_per_ray']} samples/ray "
         f"= {metrics.get('samples_per_second', 0) / 1000:.0f}k samples/s); {_headline(metrics)} "
         f"-> {args.run / 'template'}"

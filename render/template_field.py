@@ -12,6 +12,13 @@ never sees it. `appearance` [A] is the code every query uses unless one is passe
 the training views' codes after the fit: a neutral light), and `code_for_camera` blends the
 codes of the training views nearest in direction, which is what held-out views are rendered
 with (a turntable's light changes smoothly with the angle).
+
+Colour detail (`detail` set): a second hash grid, read only by the colour, whose features go
+through a small MLP (with the direction encoding, not the geometry feature: with it the branch
+fits the training views closer and the held-out ones less) into an offset of the colour head's
+logits. Its last layer starts at zero, so a field with a fresh detail branch
+renders exactly as without it. `sine fit` trains it last, on the frozen field (recon/
+colour_detail.py): density never reads it, so the geometry the main fit found stays as it is.
 """
 
 from __future__ import annotations
@@ -57,6 +64,8 @@ class TemplateFieldConfig:
     appearance_dim: int = 0  # per-view appearance code length (0: none)
     appearance_views: int = 0  # training views with a code (their directions are stored)
     gather: str = "fused"  # hash-grid gather implementation (see render/hashgrid.py)
+    detail: HashGridConfig | None = None  # the colour-detail grid (None: no detail branch)
+    detail_hidden: int = 64  # hidden width of the colour-detail MLP (1 hidden layer)
 
 
 def mlp(n_in: int, hidden: int, n_layers: int, n_out: int) -> nn.Sequential:
@@ -84,6 +93,13 @@ class TemplateField(nn.Module):
             self.register_buffer("appearance", torch.zeros(a))  # [A] the code used by default
             self.register_buffer("view_codes", torch.zeros(v, a))  # [V, A] fitted codes
             self.register_buffer("view_dirs", torch.zeros(v, 3))  # [V, 3] unit camera centres
+        self.detail_grid = self.detail_net = None
+        if cfg.detail is not None:
+            self.detail_grid = HashGrid(cfg.detail, bound=cfg.bound, gather=cfg.gather)
+            n_in = self.detail_grid.output_dim + cfg.sh_degree**2
+            self.detail_net = mlp(n_in, cfg.detail_hidden, 1, 3)
+            nn.init.zeros_(self.detail_net[-1].weight)  # starts as the field without detail
+            nn.init.zeros_(self.detail_net[-1].bias)
 
     def _sigma_act(self, raw: torch.Tensor) -> torch.Tensor:
         if self.cfg.density_activation == "softplus":
@@ -102,22 +118,42 @@ class TemplateField(nn.Module):
         return self.geometry(x)[0]
 
     def color(
-        self, geo_feat: torch.Tensor, d: torch.Tensor, code: torch.Tensor | None = None
+        self,
+        geo_feat: torch.Tensor,
+        d: torch.Tensor,
+        code: torch.Tensor | None = None,
+        x: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """geo_feat [N, F], d [N, 3], appearance code [N, A] (None: `self.appearance`)
-        -> rgb [N, 3] in (0, 1)."""
-        parts = [geo_feat, sh_encode(d, self.cfg.sh_degree)]
+        """geo_feat [N, F], d [N, 3], appearance code [N, A] (None: `self.appearance`), the
+        points x [N, 3] (needed with a detail branch) -> rgb [N, 3] in (0, 1)."""
+        return torch.sigmoid(self.color_logits(geo_feat, d, code, x))
+
+    def color_logits(self, geo_feat, d, code=None, x=None, detail: bool = True) -> torch.Tensor:
+        """The colour before its sigmoid [N, 3] (arguments as `color`; `detail` False: without
+        the detail branch's offset)."""
+        sh = sh_encode(d, self.cfg.sh_degree)
+        parts = [geo_feat, sh]
         if self.cfg.appearance_dim:
             code = self.appearance.expand(len(d), -1) if code is None else code
             parts.append(code)
-        return torch.sigmoid(self.color_net(torch.cat(parts, dim=-1)))
+        logits = self.color_net(torch.cat(parts, dim=-1))
+        if detail and self.detail_grid is not None:
+            if x is None:
+                raise ValueError("a field with colour detail needs the points for its colour")
+            logits = logits + self.detail_logits(x, sh)
+        return logits
+
+    def detail_logits(self, x: torch.Tensor, sh: torch.Tensor) -> torch.Tensor:
+        """The detail branch's offset [N, 3] to the colour logits: x [N, 3], the direction's SH
+        encoding [N, K]."""
+        return self.detail_net(torch.cat([self.detail_grid(x), sh], dim=-1))
 
     def forward(
         self, x: torch.Tensor, d: torch.Tensor, code: torch.Tensor | None = None
     ) -> dict[str, torch.Tensor]:
         """x [N, 3], d [N, 3], optional appearance code [N, A] -> sigma, rgb, geo_feat."""
         sigma, geo = self.geometry(x)
-        return {"sigma": sigma, "rgb": self.color(geo, d, code), "geo_feat": geo}
+        return {"sigma": sigma, "rgb": self.color(geo, d, code, x), "geo_feat": geo}
 
     def code_for_camera(self, center: torch.Tensor, k: int = 2) -> torch.Tensor:
         """Appearance code [A] for a camera at `center` [3] (run units): the codes of the `k`
@@ -133,11 +169,31 @@ class TemplateField(nn.Module):
         return (weights[:, None] * self.view_codes[idx]).sum(0) / weights.sum()
 
     def param_groups(self, lr_grid: float, lr_mlp: float, weight_decay_mlp: float = 1e-6):
-        """Adam groups: the hash table (no weight decay, tiny eps) and the MLPs."""
+        """Adam groups: the hash table (no weight decay, tiny eps) and the MLPs (without the
+        detail branch: `detail_param_groups`)."""
         mlps = list(self.density_net.parameters()) + list(self.color_net.parameters())
         return [
             {"params": [self.grid.table], "lr": lr_grid, "eps": 1e-15, "name": "grid"},
             {"params": mlps, "lr": lr_mlp, "weight_decay": weight_decay_mlp, "name": "mlp"},
+        ]
+
+    def detail_param_groups(self, lr_grid: float, lr_mlp: float, weight_decay_mlp: float = 1e-6):
+        """Adam groups of the detail branch: its hash table and its MLP ([] without one)."""
+        if self.detail_grid is None:
+            return []
+        return [
+            {
+                "params": [self.detail_grid.table],
+                "lr": lr_grid,
+                "eps": 1e-15,
+                "name": "detail_grid",
+            },
+            {
+                "params": list(self.detail_net.parameters()),
+                "lr": lr_mlp,
+                "weight_decay": weight_decay_mlp,
+                "name": "detail_mlp",
+            },
         ]
 
 

@@ -1,6 +1,7 @@
 """Template fitting on a tiny self-made run directory: loss goes down, outputs, exact resume."""
 
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import open3d as o3d
@@ -14,6 +15,7 @@ from recon.fit import (
     load_template,
     make_sampler,
     pixel_axes,
+    resolve_preset,
     subpixel_dirs,
 )
 from recon.rundir import RunDir
@@ -21,6 +23,8 @@ from render.cameras import Camera, CameraSet, look_at
 from render.errors import SineError
 from render.io import read_image, read_json, read_mask, read_yaml, write_image, write_mask
 from render.renderer import render_image
+from render.sh import sh_encode
+from render.template_field import TemplateField
 
 
 def _make_run(root, n_views=12, size=48):
@@ -73,6 +77,8 @@ TINY = dict(
     seed=3,
     threads=1,
     lr_mlp=1e-2,
+    detail_steps=6,
+    detail_batch_rays=128,
 )
 
 
@@ -116,10 +122,12 @@ def test_resume_gives_the_same_parameters(tiny_run, tmp_path, capsys):
     resumed = _copy(tiny_run, tmp_path / "b")
     assert fit_template(resumed.root, cfg, progress=False, stop_at=5) == {"step": 5}
     assert not (resumed.template / "field.pt").exists()
+    # then stopped in the colour-detail phase (steps 11-16), whose cache is built again
+    assert fit_template(resumed.root, cfg, progress=False, stop_at=13) == {"step": 13}
     fit_template(resumed.root, cfg, progress=False)
     a = torch.load(straight.template / "checkpoint.pt", weights_only=True)
     b = torch.load(resumed.template / "checkpoint.pt", weights_only=True)
-    assert a["step"] == b["step"] == 10
+    assert a["step"] == b["step"] == 16
     for k, v in a["state"]["field"]["state_dict"].items():
         torch.testing.assert_close(b["state"]["field"]["state_dict"][k], v, rtol=0, atol=0)
     # other options: the finished fit is redone (and says which options changed)
@@ -169,8 +177,9 @@ def test_cli_says_already_done_for_a_finished_fit(tiny_run, tmp_path, capsys):
     run = _copy(tiny_run, tmp_path / "cli")
     args = ["fit", str(run.root), "--quiet", "--iterations", "3", "--batch-rays", "256"]
     args += ["--log2-table", "12", "--max-resolution", "64", "--previews", "0"]
+    args += ["--detail-steps", "2", "--detail-batch-rays", "64"]
     assert main(args) == 0
-    assert "fit: 3 steps in" in capsys.readouterr().out
+    assert "fit: 3 steps + 2 colour-detail steps in" in capsys.readouterr().out
     assert main(args + ["--device", "cpu"]) == 0  # a runtime option: still done
     assert "fit: already done with these options (3 steps" in capsys.readouterr().out
 
@@ -264,6 +273,8 @@ def test_presets_fill_only_the_options_not_given():
     assert (fast.iterations, fast.batch_rays) == (300, 1024)
     default = resolve_preset(FitConfig())
     assert (default.iterations, default.batch_rays) == (1500, 2048)
+    assert (fast.detail_steps, default.detail_steps) == (300, 1500)
+    assert resolve_preset(FitConfig(detail_steps=0)).detail_steps == 0
     mixed = resolve_preset(FitConfig(preset="quality", iterations=7))
     assert (mixed.iterations, mixed.batch_rays, mixed.log2_table) == (7, 4096, 19)
     with pytest.raises(SineError, match="--preset"):
@@ -454,7 +465,9 @@ def test_capture_background_composites_rays_outside_the_masks_over_their_own_pix
         write_image(run.image_path(cam.name), image)
     fogs, objects = {}, {}
     for mode in ("learn", "capture"):
-        cfg = FitConfig(iterations=150, background=mode, mask_weight=0.0, **TINY)
+        # the main fit's background handling alone (the colour-detail phase off)
+        options = {**TINY, "detail_steps": 0}
+        cfg = FitConfig(iterations=150, background=mode, mask_weight=0.0, **options)
         metrics = fit_template(run.root, cfg, progress=False, force=True)
         assert metrics["background_behind_rays"] == ("capture" if mode == "capture" else "colour")
         field, bg = load_template(run.root)
@@ -599,7 +612,8 @@ def test_the_saved_field_is_the_moving_average_of_the_last_steps(tiny_run, tmp_p
     a_5 = w_5 (half-way), a_k = d a_(k-1) + (1 - d) w_k (w_k: the weights after k steps);
     every stop and resume in between keeps the average."""
     decay = 0.6
-    cfg = FitConfig(iterations=10, average_window=0.25, **TINY)
+    options = {**TINY, "detail_steps": 0}  # the main steps' weights (no colour-detail phase)
+    cfg = FitConfig(iterations=10, average_window=0.25, **options)
     run = _copy(tiny_run, tmp_path / "run")
     weights = {}
     for k in range(5, 11):
@@ -619,7 +633,82 @@ def test_the_saved_field_is_the_moving_average_of_the_last_steps(tiny_run, tmp_p
     assert moved > 0  # the average is not the last step's weights
     # without the average, field.pt is the last step's weights
     plain = _copy(tiny_run, tmp_path / "plain")
-    fit_template(plain.root, FitConfig(iterations=10, average_window=0.0, **TINY), progress=False)
+    fit_template(
+        plain.root, FitConfig(iterations=10, average_window=0.0, **options), progress=False
+    )
     last = torch.load(plain.template / "checkpoint.pt", weights_only=True)["state"]["field"]
     for name, value in torch.load(plain.template / "field.pt", weights_only=True)["field"].items():
         torch.testing.assert_close(value, last["state_dict"][name], rtol=0, atol=0)
+
+
+# ---- the colour-detail phase (recon/colour_detail.py) -------------------------------------------
+def _detail_field(max_resolution=64):
+    from recon.fit import field_config
+
+    cfg = FitConfig(iterations=10, **{**TINY, "max_resolution": max_resolution, "detail_steps": 5})
+    return TemplateField(field_config(cfg))
+
+
+def test_a_fresh_detail_branch_renders_as_the_field_without_it():
+    torch.manual_seed(0)
+    with_detail = _detail_field()
+    plain = TemplateField(replace(with_detail.cfg, detail=None))
+    missing, unexpected = plain.load_state_dict(with_detail.state_dict(), strict=False)
+    assert not missing and unexpected and all(k.startswith("detail_") for k in unexpected)
+    x = torch.rand(500, 3) * 1.6 - 0.8
+    d = torch.nn.functional.normalize(torch.randn(500, 3), dim=-1)
+    a, b = with_detail(x, d), plain(x, d)
+    torch.testing.assert_close(a["rgb"], b["rgb"], rtol=0, atol=0)
+    torch.testing.assert_close(a["sigma"], b["sigma"], rtol=0, atol=0)
+    with pytest.raises(ValueError, match="needs the points"):
+        with_detail.color(a["geo_feat"], d)
+
+
+def test_the_detail_cache_renders_the_training_rays_as_the_field_does(tiny_run, tmp_path):
+    """The cached samples' composite is the rendered colour (up to the samples left out, each
+    below MIN_WEIGHT), the detail steps lower the loss and train only the detail branch."""
+    from recon.colour_detail import MIN_WEIGHT, build_detail_cache, detail_rays, detail_step
+    from recon.fit import build_ray_pool, load_views
+    from render.renderer import render_rays
+
+    run = _copy(tiny_run, tmp_path / "d")
+    cfg = FitConfig(iterations=60, **{**TINY, "detail_steps": 0})
+    fit_template(run.root, cfg, progress=False)
+    fitted, bg = load_template(run.root)
+    field = TemplateField(replace(fitted.cfg, detail=_detail_field().cfg.detail))
+    field.load_state_dict(fitted.state_dict(), strict=False)
+    torch.nn.init.normal_(field.detail_net[-1].weight, std=0.5)  # a branch that does something
+    sampler = make_sampler(resolve_preset(cfg, run), run)
+    pool = build_ray_pool(load_views(run, "train"), sampler, torch.device("cpu"))
+    rays = detail_rays(pool, False, torch.Generator().manual_seed(0))
+    assert len(rays) == len(pool.origins)
+    behind = bg().expand(len(rays), 3)
+    with torch.no_grad():
+        cache = build_detail_cache(field, sampler, pool, rays, behind, chunk=1000)
+        rendered = render_rays(field, pool.origins, pool.dirs, sampler, bg(), hits=pool.hits)
+    assert len(cache) <= len(cache.points) <= len(cache) * sampler.samples_per_ray
+    owner = torch.repeat_interleave(torch.arange(len(cache)), cache.count)
+    sh = sh_encode(cache.dirs[owner], field.cfg.sh_degree)
+    with torch.no_grad():
+        rgb = torch.sigmoid(cache.base_logits + field.detail_logits(cache.points, sh))
+    colour = torch.zeros(len(cache), 3).index_add(0, owner, cache.weights[:, None] * rgb)
+    composite = colour + (1 - cache.opacity[:, None]) * cache.behind
+    gap = (composite - rendered["rgb"]).abs().max().item()
+    assert gap <= 10 * MIN_WEIGHT  # the samples below MIN_WEIGHT, nothing else
+    # edge pixels out when the fit box-filters them
+    assert len(detail_rays(pool, True, torch.Generator())) == int((~pool.edge).sum())
+
+    for p in field.parameters():
+        p.requires_grad_(False)
+    detail_params = [*field.detail_grid.parameters(), *field.detail_net.parameters()]
+    for p in detail_params:
+        p.requires_grad_(True)
+    opt = torch.optim.Adam(detail_params, lr=1e-2)
+    generator = torch.Generator().manual_seed(0)
+    full = detail_step(field, cache, len(cache), generator)["rgb"].item()
+    for _ in range(60):
+        opt.zero_grad()
+        detail_step(field, cache, 256, generator)["rgb"].backward()
+        opt.step()
+    assert detail_step(field, cache, len(cache), generator)["rgb"].item() < 0.7 * full
+    assert all(p.grad is None for p in field.color_net.parameters())

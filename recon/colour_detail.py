@@ -1,0 +1,135 @@
+"""The colour-detail phase of `sine fit`: the fine texture the main fit leaves soft.
+
+Why. The main fit trains density and colour together, 21 field samples per ray, ~20k rays/s on
+2 cores: in its 1500 steps each training pixel is drawn about four times. On a real capture the
+fine texture stays soft (the oxford-dinosaur's training views 24-25 dB inside the masks, while
+its photos, warped into a neighbouring view through the template's own depth, agree to 28-30
+dB: bench/RESULTS.md "The colour-detail phase").
+
+How. When the main fit has finished (its moving average in place) the density is frozen, so
+every training ray's sample weights are fixed. They are computed once (`build_detail_cache`):
+each ray keeps the samples whose weight exceeds `MIN_WEIGHT` (~3-6 of 21) and the colour
+head's logits there. Then only the field's detail branch
+(`TemplateField.detail_grid` / `detail_net`, render/template_field.py) learns, an offset to
+the colour logits, on the cached samples of many rays per step (`detail_step`: ~4-5x the
+rays per second of a main step). Density, the geometry feature and the main colour head stay
+as the main fit left them, so the geometry the edits build on does not move.
+
+Pixels the main fit box-filters (the masks' edge when `--train-supersample` > 1) are left out:
+their value is the mean of several rays, which one cached centre ray cannot match.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from render import volume
+from render.sh import sh_encode
+from render.template_field import TemplateField
+
+MIN_WEIGHT = 1e-3  # samples below this rendering weight are left out of the cache
+MAX_CACHED_RAYS = 2_000_000  # beyond this many training rays, a random subset is cached
+
+
+@dataclass
+class DetailCache:
+    """The frozen field's samples of the training rays, ray by ray (a ray's samples are
+    contiguous: `start`, `count`)."""
+
+    points: torch.Tensor  # [S, 3] kept samples
+    weights: torch.Tensor  # [S] their rendering weights
+    base_logits: torch.Tensor  # [S, 3] the colour head's logits without the detail branch
+    start: torch.Tensor  # [R] int64: each ray's first sample
+    count: torch.Tensor  # [R] int64: each ray's kept samples
+    dirs: torch.Tensor  # [R, 3] unit ray directions
+    target: torch.Tensor  # [R, 3] the pixel's colour
+    behind: torch.Tensor  # [R, 3] what the ray composites over (background or captured pixel)
+    opacity: torch.Tensor  # [R] the ray's opacity over all its samples
+
+    def __len__(self) -> int:
+        return len(self.start)
+
+
+def detail_rays(pool, box_filtered_edges: bool, generator: torch.Generator) -> torch.Tensor:
+    """Indices into `pool` of the rays the detail phase trains on [R]: all of them but the
+    masks' edge pixels when the main fit box-filters those, at most MAX_CACHED_RAYS (a random
+    subset, sorted)."""
+    rays = torch.arange(len(pool.origins), device=pool.origins.device)
+    if box_filtered_edges:
+        rays = rays[~pool.edge]
+    if len(rays) > MAX_CACHED_RAYS:
+        pick = torch.randperm(len(rays), generator=generator)[:MAX_CACHED_RAYS]
+        rays = rays[pick.to(rays.device).sort().values]
+    return rays
+
+
+@torch.no_grad()
+def build_detail_cache(
+    field: TemplateField,
+    sampler,
+    pool,
+    rays: torch.Tensor,
+    behind: torch.Tensor,
+    codes: torch.Tensor | None = None,
+    chunk: int = 16384,
+) -> DetailCache:
+    """Samples, weights and colour logits of the frozen `field` along the pool's `rays` [R]
+    (indices into `pool`; `behind` [R, 3] what each composites over; `codes` [V, A] the
+    training views' appearance codes when the field has them)."""
+    points, weights, logits, counts, opacity = [], [], [], [], []
+    for first in range(0, len(rays), chunk):
+        idx = rays[first : first + chunk]
+        o, d = pool.origins[idx], pool.dirs[idx]  # [r, 3]
+        hits = pool.hits[idx]
+        t, delta = sampler.sample(hits, False, None)  # [r, S]
+        if getattr(sampler, "n_importance", 0):  # as `render_rays`: coarse weights first
+            coarse = o[:, None, :] + d[:, None, :] * t[..., None]
+            w = volume.render_weights(
+                field.density(coarse.reshape(-1, 3)).view(t.shape), t, delta=delta
+            )
+            t, delta = sampler.importance(hits, t, w, False, None)
+        x = o[:, None, :] + d[:, None, :] * t[..., None]  # [r, S, 3]
+        sigma, geo = field.geometry(x.reshape(-1, 3))
+        w = volume.render_weights(sigma.view(t.shape), t, delta=delta)  # [r, S]
+        ray, sample = torch.nonzero(w > MIN_WEIGHT, as_tuple=True)  # ray-major order
+        kept_geo = geo.view(*t.shape, -1)[ray, sample]  # [k, F]
+        code = codes[pool.view[idx][ray]] if codes is not None and codes.numel() else None
+        points.append(x[ray, sample])
+        weights.append(w[ray, sample])
+        logits.append(field.color_logits(kept_geo, d[ray], code, detail=False))
+        counts.append(torch.bincount(ray, minlength=len(idx)))
+        opacity.append(volume.opacity(w))
+    count = torch.cat(counts)
+    return DetailCache(
+        points=torch.cat(points),
+        weights=torch.cat(weights),
+        base_logits=torch.cat(logits),
+        start=torch.cumsum(count, 0) - count,
+        count=count,
+        dirs=pool.dirs[rays],
+        target=pool.rgb[rays],
+        behind=behind,
+        opacity=torch.cat(opacity),
+    )
+
+
+def detail_step(
+    field: TemplateField, cache: DetailCache, batch_rays: int, generator: torch.Generator
+) -> dict[str, torch.Tensor]:
+    """One step's loss of the detail branch: `batch_rays` cached rays drawn uniformly, their
+    colour composited from the cached weights and the colour with the branch's offset."""
+    device = cache.points.device
+    rays = torch.randint(len(cache), (batch_rays,), generator=generator).to(device)  # [B]
+    count = cache.count[rays]  # [B]
+    owner = torch.repeat_interleave(torch.arange(batch_rays, device=device), count)  # [k]
+    first_of_owner = torch.repeat_interleave(torch.cumsum(count, 0) - count, count)
+    sample = cache.start[rays][owner] + torch.arange(len(owner), device=device) - first_of_owner
+    sh = sh_encode(cache.dirs[rays][owner], field.cfg.sh_degree)  # [k, K]
+    offset = field.detail_logits(cache.points[sample], sh)
+    rgb = torch.sigmoid(cache.base_logits[sample] + offset)  # [k, 3]
+    colour = torch.zeros(batch_rays, 3, device=device, dtype=rgb.dtype)
+    colour = colour.index_add(0, owner, cache.weights[sample, None] * rgb)
+    pred = colour + (1.0 - cache.opacity[rays, None]) * cache.behind[rays]
+    return {"rgb": ((pred - cache.target[rays]) ** 2).mean()}
