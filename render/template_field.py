@@ -94,6 +94,9 @@ class TemplateField(nn.Module):
             self.register_buffer("view_codes", torch.zeros(v, a))  # [V, A] fitted codes
             self.register_buffer("view_dirs", torch.zeros(v, 3))  # [V, 3] unit camera centres
         self.detail_grid = self.detail_net = None
+        # whether queries add the detail offset: off while `sine fit`'s main steps train (the
+        # branch is learnt after them, on the frozen field), on for every fitted field
+        self.detail_active = True
         if cfg.detail is not None:
             self.detail_grid = HashGrid(cfg.detail, bound=cfg.bound, gather=cfg.gather)
             n_in = self.detail_grid.output_dim + cfg.sh_degree**2
@@ -153,7 +156,8 @@ class TemplateField(nn.Module):
     ) -> dict[str, torch.Tensor]:
         """x [N, 3], d [N, 3], optional appearance code [N, A] -> sigma, rgb, geo_feat."""
         sigma, geo = self.geometry(x)
-        return {"sigma": sigma, "rgb": self.color(geo, d, code, x), "geo_feat": geo}
+        rgb = torch.sigmoid(self.color_logits(geo, d, code, x, detail=self.detail_active))
+        return {"sigma": sigma, "rgb": rgb, "geo_feat": geo}
 
     def code_for_camera(self, center: torch.Tensor, k: int = 2) -> torch.Tensor:
         """Appearance code [A] for a camera at `center` [3] (run units): the codes of the `k`
