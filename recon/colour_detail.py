@@ -1,22 +1,22 @@
 """The colour-detail phase of `sine fit`: the fine texture the main fit leaves soft.
 
-Why. The main fit trains density and colour together, 21 field samples per ray, ~20k rays/s on
-2 cores: in its 1500 steps each training pixel is drawn about four times. On a real capture the
-fine texture stays soft (the oxford-dinosaur's training views 24-25 dB inside the masks, while
-its photos, warped into a neighbouring view through the template's own depth, agree to 28-30
-dB: bench/RESULTS.md "The colour-detail phase").
+Why. The main fit trains density and colour together, 21 field samples per ray, 10-20k rays/s
+on 2 cores: in its 1500 steps each training pixel is drawn about four times. On a real capture
+the fine texture stays soft (the oxford-dinosaur's held-out views 24.7-25.1 dB where both ring
+neighbours' photos, warped into them through the template's own depth, score 29-30 dB:
+bench/RESULTS.md "The colour-detail phase", `bench/bench_view_consistency.py`).
 
 How. When the main fit has finished (its moving average in place) the density is frozen, so
 every training ray's sample weights are fixed. They are computed once (`build_detail_cache`):
-each ray keeps the samples whose weight exceeds `MIN_WEIGHT` (~3-6 of 21) and the colour
-head's logits there. Then only the field's detail branch
-(`TemplateField.detail_grid` / `detail_net`, render/template_field.py) learns, an offset to
-the colour logits, on the cached samples of many rays per step (`detail_step`: ~4-5x the
-rays per second of a main step). Density, the geometry feature and the main colour head stay
-as the main fit left them, so the geometry the edits build on does not move.
+each ray keeps the samples whose weight exceeds `MIN_WEIGHT` (2-6 of 21 on the benchmarks) and
+the colour head's logits there. Then only the field's detail branch (`TemplateField.detail_grid`
+/ `detail_net`, render/template_field.py; left out of the main steps) learns an offset to the
+colour logits, on the cached samples of many rays per step (`detail_step`: 5-12x the rays per
+second of a main step). Density, the geometry feature and the main colour head stay as the main
+fit left them, so the geometry the edits and the feature field build on does not move.
 
-Pixels the main fit box-filters (the masks' edge when `--train-supersample` > 1) are left out:
-their value is the mean of several rays, which one cached centre ray cannot match.
+When the main fit box-filters (`--train-supersample` > 1) the masks' edge pixels are left out:
+such a pixel is part object, part background, and one cached centre ray cannot match its mean.
 """
 
 from __future__ import annotations

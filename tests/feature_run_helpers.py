@@ -20,6 +20,8 @@ TINY_FIT = dict(
     coarse_samples=2,
     previews=0,
     checkpoint_every=1000,
+    detail_steps=10,  # a short colour-detail phase: the edits read a template that has one
+    detail_batch_rays=256,
 )
 # tiny editing runs (64 px, a few dozen steps) shared by the geometry, texture and hybrid tests
 TINY_GEOMETRY_EDIT = dict(
