@@ -16,9 +16,9 @@ with (a turntable's light changes smoothly with the angle).
 Colour detail (`detail` set): a second hash grid, read only by the colour, whose features go
 through a small MLP (with the direction encoding, not the geometry feature: with it the branch
 fits the training views closer and the held-out ones less) into an offset of the colour head's
-logits. Its last layer starts at zero, so a field with a fresh detail branch
-renders exactly as without it. `sine fit` trains it last, on the frozen field (recon/
-colour_detail.py): density never reads it, so the geometry the main fit found stays as it is.
+logits. Its last layer starts at zero, so a field with a fresh detail branch renders exactly as
+without it. `sine fit` trains it last, on the frozen field (recon/colour_detail.py): density
+never reads it, so the geometry the main fit found stays as it is.
 """
 
 from __future__ import annotations
@@ -129,7 +129,7 @@ class TemplateField(nn.Module):
     ) -> torch.Tensor:
         """geo_feat [N, F], d [N, 3], appearance code [N, A] (None: `self.appearance`), the
         points x [N, 3] (needed with a detail branch) -> rgb [N, 3] in (0, 1)."""
-        return torch.sigmoid(self.color_logits(geo_feat, d, code, x))
+        return torch.sigmoid(self.color_logits(geo_feat, d, code, x, self.detail_active))
 
     def color_logits(self, geo_feat, d, code=None, x=None, detail: bool = True) -> torch.Tensor:
         """The colour before its sigmoid [N, 3] (arguments as `color`; `detail` False: without
