@@ -147,8 +147,8 @@ class FitConfig(LoopOptions):
         "steps of the colour-detail phase after the main steps: the density frozen, each "
         "training ray's sample weights cached once, a second hash grid read only by the colour "
         "learns the fine texture on many rays per step (recon/colour_detail.py; held-out object "
-        "PSNR: oxford-dinosaur 23.5 -> 25.1 dB, spot +1.2, figurine +0.5, toycar +0.1; ~1 min; "
-        "0: off; None: the preset's: fast 300, default and quality 1500)",
+        "PSNR: oxford-dinosaur 23.5 -> 25.0-25.1 dB, spot +1.2, figurine +0.5, toycar +0.1; "
+        "~1 min; 0: off; None: the preset's: fast 300, default and quality 1500)",
         low=0,
     )
     detail_batch_rays: int = option(4096, "rays per colour-detail step", low=1)
