@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from render import volume
-from render.renderer import _background
+from render.renderer import _background, sample_hits
 
 
 @dataclass
@@ -132,12 +132,7 @@ def sample_view(
         if idx.numel() == 0:
             continue
         sub, o, d = hits[idx], o[idx], d[idx]
-        t, delta = sampler.sample(sub, False)
-        if getattr(sampler, "n_importance", 0):
-            pts = o[:, None, :] + d[:, None, :] * t[..., None]
-            sigma = template(pts.reshape(-1, 3), d.repeat_interleave(t.shape[1], 0))["sigma"]
-            w = volume.render_weights(sigma.view(t.shape), t, delta=delta)
-            t, delta = sampler.importance(sub, t, w, False)
+        t, delta, _ = sample_hits(sampler, sub, o, d, lambda x, v: template(x, v)["sigma"])
         pts = o[:, None, :] + d[:, None, :] * t[..., None]  # [r, S, 3]
         res = template(pts.reshape(-1, 3), d.repeat_interleave(t.shape[1], 0))
         w = volume.render_weights(res["sigma"].view(t.shape), t, delta=delta)  # [r, S]

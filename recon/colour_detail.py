@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import torch
 
 from render import volume
+from render.renderer import sample_hits
 from render.sh import sh_encode
 from render.template_field import TemplateField
 
@@ -83,13 +84,7 @@ def build_detail_cache(
         idx = rays[first : first + chunk]
         o, d = pool.origins[idx], pool.dirs[idx]  # [r, 3]
         hits = pool.hits[idx]
-        t, delta = sampler.sample(hits, False, None)  # [r, S]
-        if getattr(sampler, "n_importance", 0):  # as `render_rays`: coarse weights first
-            coarse = o[:, None, :] + d[:, None, :] * t[..., None]
-            w = volume.render_weights(
-                field.density(coarse.reshape(-1, 3)).view(t.shape), t, delta=delta
-            )
-            t, delta = sampler.importance(hits, t, w, False, None)
+        t, delta, _ = sample_hits(sampler, hits, o, d, lambda x, v: field.density(x))  # [r, S]
         x = o[:, None, :] + d[:, None, :] * t[..., None]  # [r, S, 3]
         sigma, geo = field.geometry(x.reshape(-1, 3))
         w = volume.render_weights(sigma.view(t.shape), t, delta=delta)  # [r, S]

@@ -31,6 +31,30 @@ def _background(background, n: int, ref: torch.Tensor) -> torch.Tensor:
     return bg.to(device=ref.device, dtype=ref.dtype).expand(n, 3)
 
 
+def sample_hits(
+    sampler,
+    hits: RayHits,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    sigma_at: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    perturb: bool = False,
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """Sample distances (t, delta) [r, S] along the hit rays `hits` (origins, dirs [r, 3]),
+    refined by the sampler's importance pass when it has one, from the coarse samples'
+    densities `sigma_at(points [M, 3], dirs [M, 3]) -> [M]` (no gradient); also the number of
+    coarse field queries that pass made (0 without one)."""
+    t, delta = sampler.sample(hits, perturb, generator)
+    if not getattr(sampler, "n_importance", 0):
+        return t, delta, 0
+    with torch.no_grad():
+        pts = origins[:, None, :] + dirs[:, None, :] * t[..., None]
+        sigma = sigma_at(pts.reshape(-1, 3), dirs.repeat_interleave(t.shape[1], 0))
+        w = volume.render_weights(sigma.view(t.shape), t, delta=delta)
+    t, delta = sampler.importance(hits, t, w, perturb, generator)
+    return t, delta, w.numel()
+
+
 def render_rays(
     field_query: FieldQuery,
     origins: torch.Tensor,
@@ -66,16 +90,9 @@ def render_rays(
         return out
     sub = hits[idx]
     o, d = origins[idx], dirs[idx]  # [r, 3]
-    t, delta = sampler.sample(sub, perturb, generator)  # [r, S]
-    if getattr(sampler, "n_importance", 0):
-        with torch.no_grad():
-            pts = o[:, None, :] + d[:, None, :] * t[..., None]
-            sigma = field_query(pts.reshape(-1, 3), d.repeat_interleave(t.shape[1], 0))["sigma"]
-            w = volume.render_weights(sigma.view(t.shape), t, delta=delta)
-        n_coarse = t.numel()
-        t, delta = sampler.importance(sub, t, w, perturb, generator)
-    else:
-        n_coarse = 0
+    t, delta, n_coarse = sample_hits(
+        sampler, sub, o, d, lambda x, v: field_query(x, v)["sigma"], perturb, generator
+    )  # [r, S]
     n_s = t.shape[1]
     pts = o[:, None, :] + d[:, None, :] * t[..., None]  # [r, S, 3]
     res = field_query(pts.reshape(-1, 3), d.repeat_interleave(n_s, 0))
