@@ -635,21 +635,25 @@ def refine_with_field(
     device,
     progress: bool = True,
     proxy: Path | None = None,
+    old_ious: list[float] | None = None,
 ) -> tuple:
     """A proxy fused from the partly trained field's depth (recon.proxy_refine), the views
-    seen beyond `proxy` (default: the run's proxy_mesh.ply) carving it -> (mesh, JSON-able
-    stats: silhouette IoU before/after, triangles, seconds)."""
+    seen beyond `proxy` (default: the run's proxy_mesh.ply; `old_ious` its silhouette IoU per
+    training view when known) carving it -> (mesh, JSON-able stats: silhouette IoU
+    before/after, triangles, seconds; the new proxy's IoU per training view or None)."""
     from recon.proxy_refine import RefineConfig, refine_run
 
     refine_cfg = RefineConfig(refine_views=cfg.refine_views)
-    mesh, stats = refine_run(run, field, sampler, refine_cfg, device, progress, proxy=proxy)
+    mesh, stats = refine_run(
+        run, field, sampler, refine_cfg, device, progress, proxy=proxy, old_ious=old_ious
+    )
     plain = {k: v for k, v in stats.items() if isinstance(v, bool | int | float | str)}
     print(
         f"fit: proxy refined from the field's depth: silhouette IoU "
         f"{plain.get('silhouette_iou_before', float('nan')):.3f} -> "
         f"{plain.get('silhouette_iou_after', float('nan')):.3f}"
     )
-    return mesh, plain
+    return mesh, plain, stats.get("silhouette_ious_after")
 
 
 def field_average(field: TemplateField, window: float, iterations: int):
@@ -975,14 +979,15 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
 
     field.train()
     main_end = cfg.iterations
+    proxy_ious = None  # the current refined proxy's silhouette IoU per view (once computed)
     for refine_at in refine_steps[refinements_done(proxy_state) :]:
         leg_end = refine_at if stop_at is None else min(stop_at, refine_at)
         trainer.run(step, leg_end)
         if trainer.step < refine_at:  # stopped early on purpose
             return {"step": trainer.step}
         current = refined_proxy if proxy_state["refined"] else run.proxy_mesh
-        mesh, stats = refine_with_field(
-            run, cfg, field, sampler, device, trainer.progress, proxy=current
+        mesh, stats, proxy_ious = refine_with_field(
+            run, cfg, field, sampler, device, trainer.progress, current, proxy_ious
         )
         write_mesh(refined_proxy, mesh)
         rounds = refinements_done(proxy_state) + 1  # with this one

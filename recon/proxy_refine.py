@@ -161,22 +161,35 @@ def ray_depths(
 
 
 def render_depth(
-    field, sampler, cam: Camera, cfg: RefineConfig, device: torch.device | None = None
+    field,
+    sampler,
+    cam: Camera,
+    cfg: RefineConfig,
+    device: torch.device | None = None,
+    pixels: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One camera -> opacity [H, W], ray distance [H, W] (the `refine_depth_level` crossing,
     or the expected distance when it is 0; inf where the level is never reached), camera z
-    [H, W] of that distance."""
+    [H, W] of that distance. `pixels` [H, W] bool: only those are rendered (the others read
+    opacity 0, distance inf)."""
     origins, dirs = (torch.from_numpy(a).to(device or "cpu") for a in cam.rays())
+    shape = (cam.height, cam.width)
+    chosen = None
+    if pixels is not None:
+        chosen = torch.from_numpy(np.flatnonzero(pixels)).to(origins.device)
+        origins, dirs = origins[chosen], dirs[chosen]
     level = cfg.refine_depth_level or 0.5
-    opacity, distance = [], []
+    opacity, distance = [torch.zeros(0)], [torch.zeros(0)]
     for start in range(0, len(origins), cfg.refine_chunk):
         part = slice(start, start + cfg.refine_chunk)
         res = ray_depths(field, sampler, origins[part], dirs[part], level)
         opacity.append(res["opacity"])
         distance.append(res["level"] if cfg.refine_depth_level else res["expected"])
-    shape = (cam.height, cam.width)
-    opacity = torch.cat(opacity).numpy().reshape(shape)
-    t = torch.cat(distance).numpy().reshape(shape)
+    opacity, t = torch.cat(opacity), torch.cat(distance)
+    if chosen is not None:  # back into the image
+        opacity = torch.zeros(shape[0] * shape[1]).index_copy(0, chosen.cpu(), opacity)
+        t = torch.full((shape[0] * shape[1],), float("inf")).index_copy(0, chosen.cpu(), t)
+    opacity, t = opacity.numpy().reshape(shape), t.numpy().reshape(shape)
     z = t * cam.z_per_unit_distance().reshape(shape)
     return opacity, t, z
 
@@ -195,15 +208,15 @@ def field_depth(
 
     Kept: opacity >= min_opacity, inside the (1-pixel dilated) mask, within max_offset of the
     proxy's hit along the ray (rays missing the proxy are kept). Seen empty: outside the dilated
-    mask, or (no mask) rendered below EMPTY_OPACITY.
+    mask, or (no mask) rendered below EMPTY_OPACITY. With a mask only the dilated mask's pixels
+    are rendered (nothing outside it could be kept), so the silhouette is the field's inside it.
     """
-    opacity, t, z = render_depth(field, sampler, cam, cfg, device)
-    silhouette = opacity >= cfg.refine_min_opacity
-    keep = silhouette & np.isfinite(z) & (z > 0)
     near = None
     if mask is not None:
         near = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-        keep &= near
+    opacity, t, z = render_depth(field, sampler, cam, cfg, device, pixels=near)
+    silhouette = opacity >= cfg.refine_min_opacity
+    keep = silhouette & np.isfinite(z) & (z > 0)
     shift = np.zeros(0, np.float32)
     if proxy is not None:
         t_proxy = proxy.cast_camera(cam).t.reshape(z.shape)
@@ -245,6 +258,7 @@ def refine_proxy(
     closing_mesh=None,
     device: torch.device | None = None,
     progress: bool = True,
+    old_ious: list[float] | None = None,
 ):
     """A new proxy from the field's depth in `cameras` (training views, full size; `masks`
     [H, W] bool per camera or None) -> (legacy o3d TriangleMesh, stats). `field(points [M, 3],
@@ -253,7 +267,10 @@ def refine_proxy(
     `old_proxy`: the current proxy (any mesh `render.raycast.mesh_arrays` takes): it closes
     what the field did not see (unless `closing_mesh` is given, e.g. the visual hull), the
     max_offset test is against it, and the stats compare with it. stats: silhouette IoU with the
-    masks (mean/min over all `cameras`, old and new), triangles, pixels kept, how far the
+    masks (mean/min over all `cameras`, old and new; `silhouette_ious_after` the new one's per
+    camera, which a next round can pass as `old_ious` rather than cast the same silhouettes
+    again), triangles, whether the new one is closed, pixels kept (of the masks; of the field's
+    silhouette, inside the dilated masks when there are masks), how far the
     field's depth lies from the old proxy (median / 90th percentile of |t_field - t_proxy|),
     the TSDF voxel used, seconds (rendering, fusion, total).
     """
@@ -314,18 +331,22 @@ def refine_proxy(
         "refine_shift_p90": float(np.percentile(shift, 90)) if len(shift) else None,
         "proxy_triangles_before": len(old_f),
         "proxy_triangles_after": len(mesh.triangles),
-        "proxy_watertight_after": bool(mesh.is_watertight()),
+        # closed as recon.proxy_mesh.mesh_stats counts it (Open3D's is_watertight adds a
+        # self-intersection test: 3.3 s on a 40k-triangle proxy, per round)
+        "proxy_closed_after": bool(mesh.is_edge_manifold(False) and mesh.is_vertex_manifold()),
         "seconds_render": t_render,
         "seconds_fuse": t_total - t_render,
     }
     if masks is not None:
-        before = silhouette_ious((old_v, old_f), cameras, masks)
+        known = old_ious is not None and len(old_ious) == len(cameras)
+        before = old_ious if known else silhouette_ious((old_v, old_f), cameras, masks)
         after = silhouette_ious(mesh, cameras, masks)
         stats.update(
             silhouette_iou_before=float(np.mean(before)),
             silhouette_iou_after=float(np.mean(after)),
             silhouette_iou_min_before=float(np.min(before)),
             silhouette_iou_min_after=float(np.min(after)),
+            silhouette_ious_after=after,
         )
     stats["seconds"] = time.perf_counter() - t0
     return mesh, stats
@@ -354,10 +375,11 @@ def refine_run(
     device: torch.device | None = None,
     progress: bool = True,
     proxy: Path | None = None,
+    old_ious: list[float] | None = None,
 ):
     """`refine_proxy` on a run: its training views (masks when every one has a mask), its
-    proxy (`proxy`, default proxy_mesh.ply) and proxy settings -> (mesh, stats). Writes
-    nothing."""
+    proxy (`proxy`, default proxy_mesh.ply; `old_ious` its silhouette IoUs when known) and
+    proxy settings -> (mesh, stats). Writes nothing."""
     import open3d as o3d
 
     from render.io import read_mask
@@ -378,5 +400,14 @@ def refine_run(
     old = o3d.io.read_triangle_mesh(str(proxy))
     params = run_proxy_params(run)
     return refine_proxy(
-        field, sampler, cams, masks, params, old, cfg, device=device, progress=progress
+        field,
+        sampler,
+        cams,
+        masks,
+        params,
+        old,
+        cfg,
+        device=device,
+        progress=progress,
+        old_ious=old_ious,
     )

@@ -106,7 +106,7 @@ def test_bad_proxy_moves_onto_the_field_surface():
     assert stats["silhouette_iou_after"] == pytest.approx(
         np.mean(silhouette_ious(mesh, cams, masks))
     )
-    assert stats["proxy_watertight_after"] and stats["proxy_triangles_before"] == 3480
+    assert stats["proxy_closed_after"] and stats["proxy_triangles_before"] == 3480
     # how far the field's surface lay from the proxy: the median |shift| is a few hundredths
     assert 0.02 < stats["refine_shift_median"] < 0.12
 
