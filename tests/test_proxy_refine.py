@@ -14,6 +14,7 @@ from recon.proxy_refine import (
     ray_depths,
     refine_proxy,
     refine_run,
+    render_depth,
     run_proxy_params,
     silhouette_ious,
     view_subset,
@@ -109,6 +110,40 @@ def test_bad_proxy_moves_onto_the_field_surface():
     assert stats["proxy_closed_after"] and stats["proxy_triangles_before"] == 3480
     # how far the field's surface lay from the proxy: the median |shift| is a few hundredths
     assert 0.02 < stats["refine_shift_median"] < 0.12
+
+
+def test_depth_rendered_on_chosen_pixels_is_the_full_render_there():
+    """`render_depth(pixels=)` (what a masked refinement renders: the dilated mask) gives the
+    full image's values on those pixels, opacity 0 and distance inf elsewhere."""
+    cam = cameras(32)[0]
+    sampler = BandSampler(ProxyRaycaster(ellipsoid(), inflate=0.15), n_band=32, n_coarse=4)
+    cfg = RefineConfig(refine_chunk=100)  # several chunks
+    full = render_depth(SphereField(), sampler, cam, cfg)
+    chosen = np.zeros((32, 32), bool)
+    chosen[5:20, 8:30] = True
+    part = render_depth(SphereField(), sampler, cam, cfg, pixels=chosen)
+    assert np.isfinite(full[1][chosen]).sum() > 100  # the ball is in the chosen box
+    for whole, some in zip(full, part, strict=True):
+        np.testing.assert_allclose(some[chosen], whole[chosen], rtol=1e-5, atol=1e-6)
+    assert (part[0][~chosen] == 0).all() and np.isinf(part[1][~chosen]).all()
+
+
+def test_a_known_silhouette_iou_is_not_cast_again():
+    """`old_ious` (the last round's `silhouette_ious_after`) stands for the old proxy's."""
+    cams = cameras(48)
+    masks = sphere_masks(cams, np.zeros(3), R)
+    bad = ellipsoid()
+    sampler = BandSampler(ProxyRaycaster(bad, inflate=0.15), n_band=32, n_coarse=4)
+    cfg = RefineConfig(refine_views=4)
+    _, cast = refine_proxy(SphereField(), sampler, cams, masks, ProxyParams(), bad, cfg)
+    known = [0.5] * len(cams)
+    _, given = refine_proxy(
+        SphereField(), sampler, cams, masks, ProxyParams(), bad, cfg, old_ious=known
+    )
+    assert cast["silhouette_iou_before"] == pytest.approx(0.84, abs=0.03)
+    assert given["silhouette_iou_before"] == 0.5
+    assert len(cast["silhouette_ious_after"]) == len(cams)
+    assert np.mean(cast["silhouette_ious_after"]) == cast["silhouette_iou_after"]
 
 
 def test_half_scale_and_a_subset_of_views_still_refine():
