@@ -115,6 +115,7 @@ def ray_depths(
     surface; lower levels lie nearer its onset (module doc).
     """
     from render import volume
+    from render.renderer import sample_hits
 
     n = origins.shape[0]
     out = {
@@ -128,21 +129,17 @@ def ray_depths(
         if idx.numel() == 0:
             return out
         sub, o, d = hits[idx], origins[idx], dirs[idx]
-        t, delta = sampler.sample(sub)  # [r, S]
-
         density = getattr(field, "density", None)  # sigma alone: no colour head
 
-        def weights(t, delta):
-            pts = o[:, None, :] + d[:, None, :] * t[..., None]  # [r, S, 3]
+        def sigma_at(points, point_dirs):  # [M, 3] -> [M]
             if density is not None:
-                sigma = density(pts.reshape(-1, 3))
-            else:
-                sigma = field(pts.reshape(-1, 3), d.repeat_interleave(t.shape[1], 0))["sigma"]
-            return volume.render_weights(sigma.view(t.shape).float(), t, delta=delta)
+                return density(points).float()
+            return field(points, point_dirs)["sigma"].float()
 
-        if getattr(sampler, "n_importance", 0):
-            t, delta = sampler.importance(sub, t, weights(t, delta))
-        w = weights(t, delta)  # [r, S]
+        t, delta, _ = sample_hits(sampler, sub, o, d, sigma_at)  # [r, S]
+        pts = o[:, None, :] + d[:, None, :] * t[..., None]  # [r, S, 3]
+        sigma = sigma_at(pts.reshape(-1, 3), d.repeat_interleave(t.shape[1], 0))
+        w = volume.render_weights(sigma.view(t.shape), t, delta=delta)  # [r, S]
         acc = w.sum(-1)  # [r]
         cum = torch.cumsum(w, -1)  # [r, S]
         i = torch.searchsorted(cum, torch.full((len(idx), 1), level)).clamp_max(t.shape[1] - 1)
