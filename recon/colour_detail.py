@@ -21,6 +21,7 @@ such a pixel is part object, part background, and one cached centre ray cannot m
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -32,6 +33,8 @@ from render.template_field import TemplateField
 
 MIN_WEIGHT = 1e-3  # samples below this rendering weight are left out of the cache
 MAX_CACHED_RAYS = 2_000_000  # beyond this many training rays, a random subset is cached
+CHECK_EVERY = 6  # the check holds out every 6th training view...
+CHECK_MIN_VIEWS = 6  # ...when there are at least this many
 
 
 @dataclass
@@ -110,21 +113,70 @@ def build_detail_cache(
     )
 
 
-def detail_step(
-    field: TemplateField, cache: DetailCache, batch_rays: int, generator: torch.Generator
-) -> dict[str, torch.Tensor]:
-    """One step's loss of the detail branch: `batch_rays` cached rays drawn uniformly, their
-    colour composited from the cached weights and the colour with the branch's offset."""
+def composite(
+    field: TemplateField, cache: DetailCache, rays: torch.Tensor, detail: bool = True
+) -> torch.Tensor:
+    """The colour [B, 3] of cached rays `rays` [B] (indices into the cache) composited from
+    their cached weights and colour logits, plus the detail branch's offset when `detail`."""
     device = cache.points.device
-    rays = torch.randint(len(cache), (batch_rays,), generator=generator).to(device)  # [B]
     count = cache.count[rays]  # [B]
-    owner = torch.repeat_interleave(torch.arange(batch_rays, device=device), count)  # [k]
+    owner = torch.repeat_interleave(torch.arange(len(rays), device=device), count)  # [k]
     first_of_owner = torch.repeat_interleave(torch.cumsum(count, 0) - count, count)
     sample = cache.start[rays][owner] + torch.arange(len(owner), device=device) - first_of_owner
-    sh = sh_encode(cache.dirs[rays][owner], field.cfg.sh_degree)  # [k, K]
-    offset = field.detail_logits(cache.points[sample], sh)
-    rgb = torch.sigmoid(cache.base_logits[sample] + offset)  # [k, 3]
-    colour = torch.zeros(batch_rays, 3, device=device, dtype=rgb.dtype)
+    logits = cache.base_logits[sample]  # [k, 3]
+    if detail:
+        sh = sh_encode(cache.dirs[rays][owner], field.cfg.sh_degree)  # [k, K]
+        logits = logits + field.detail_logits(cache.points[sample], sh)
+    rgb = torch.sigmoid(logits)
+    colour = torch.zeros(len(rays), 3, device=device, dtype=rgb.dtype)
     colour = colour.index_add(0, owner, cache.weights[sample, None] * rgb)
-    pred = colour + (1.0 - cache.opacity[rays, None]) * cache.behind[rays]
+    return colour + (1.0 - cache.opacity[rays, None]) * cache.behind[rays]
+
+
+def detail_step(
+    field: TemplateField,
+    cache: DetailCache,
+    batch_rays: int,
+    generator: torch.Generator,
+    among: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
+    """One step's loss of the detail branch: `batch_rays` cached rays drawn uniformly (from
+    the cache indices `among` [M] when given), composited with the branch's offset."""
+    device = cache.points.device
+    pool_size = len(cache) if among is None else len(among)
+    rays = torch.randint(pool_size, (batch_rays,), generator=generator).to(device)  # [B]
+    if among is not None:
+        rays = among[rays]
+    pred = composite(field, cache, rays)
     return {"rgb": ((pred - cache.target[rays]) ** 2).mean()}
+
+
+def check_views(view_of_ray: torch.Tensor, n_views: int) -> torch.Tensor:
+    """Which cached rays [R] bool belong to the views the check holds out: every
+    CHECK_EVERY-th training view (from the middle of the first group); none with fewer than
+    CHECK_MIN_VIEWS views. `view_of_ray` [R]: each cached ray's training view."""
+    held = torch.zeros(n_views, dtype=torch.bool, device=view_of_ray.device)
+    if n_views >= CHECK_MIN_VIEWS:
+        held[CHECK_EVERY // 2 :: CHECK_EVERY] = True
+    return held[view_of_ray]
+
+
+@torch.no_grad()
+def check_psnr(
+    field: TemplateField, cache: DetailCache, rays: torch.Tensor, chunk: int = 65536
+) -> tuple[float, float]:
+    """PSNR (dB) of the cached rays `rays` [M] without and with the detail branch."""
+    sums = [0.0, 0.0]
+    for first in range(0, len(rays), chunk):
+        part = rays[first : first + chunk]
+        for k, detail in enumerate((False, True)):
+            error = (composite(field, cache, part, detail) - cache.target[part]) ** 2
+            sums[k] += float(error.mean(dim=1).sum())
+    return tuple(-10.0 * math.log10(max(s / max(len(rays), 1), 1e-12)) for s in sums)
+
+
+def reset_branch(field: TemplateField) -> None:
+    """Zeroes the branch's last layer: the field renders exactly as without the branch."""
+    with torch.no_grad():
+        field.detail_net[-1].weight.zero_()
+        field.detail_net[-1].bias.zero_()

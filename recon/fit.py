@@ -151,6 +151,15 @@ class FitConfig(LoopOptions):
         "~1 min; 0: off; None: the preset's: fast 300, default and quality 1500)",
         low=0,
     )
+    detail_check: float = option(
+        0.2,
+        "the first fraction of the colour-detail steps trains without every 6th training view "
+        "(with >= 6 views); the branch is kept only if it renders those views' rays better than "
+        "the field without it, then trains on all rays for the rest, else it is dropped (a "
+        "sparse ring whose template fails: the branch memorises its few views; 0: no check)",
+        low=0.0,
+        high=1.0,
+    )
     detail_batch_rays: int = option(4096, "rays per colour-detail step", low=1)
     detail_levels: int = option(
         8, "levels of the colour-detail grid (from 64 cells to --max-resolution)", low=1, high=32
@@ -739,12 +748,29 @@ def evaluate(
 
 # ---- training ---------------------------------------------------------------------------------
 def _train_detail(
-    cfg: FitConfig, trainer, field, sampler, pool, background, behind_capture, codes, stop_at
+    cfg: FitConfig,
+    trainer,
+    field,
+    sampler,
+    pool,
+    background,
+    behind_capture,
+    codes,
+    phases: dict,
+    stop_at,
 ) -> dict:
     """The colour-detail phase (recon/colour_detail.py) on the frozen main field: the training
-    rays' samples cached, then the detail branch's steps up to the trainer's last step.
-    Returns its statistics for metrics.json."""
-    from recon.colour_detail import build_detail_cache, detail_rays, detail_step
+    rays' samples cached, the check (--detail-check: the branch trained without some views,
+    kept only if it renders them better; the verdict recorded in `phases`), then the branch's
+    steps on all rays up to the trainer's last step. Returns its statistics for metrics.json."""
+    from recon.colour_detail import (
+        build_detail_cache,
+        check_psnr,
+        check_views,
+        detail_rays,
+        detail_step,
+        reset_branch,
+    )
 
     t_cache = time.perf_counter()
     for p in field.parameters():
@@ -760,16 +786,57 @@ def _train_detail(
     view_codes = codes.detach() if cfg.appearance_dim else None
     cache = build_detail_cache(field, sampler, pool, rays, behind, view_codes, cfg.eval_chunk)
     cache_seconds = time.perf_counter() - t_cache
-    trainer.run(
-        lambda i: detail_step(field, cache, cfg.detail_batch_rays, trainer.generator), stop_at
-    )
+    held = check_views(pool.view[rays], int(pool.view.max()) + 1 if len(rays) else 0)
+    check_end = cfg.iterations + round(cfg.detail_check * cfg.detail_steps)
+    checked = bool(held.any()) and check_end > cfg.iterations
+    if checked and trainer.step < check_end:  # first without the held-out views
+        kept_rays = torch.nonzero(~held)[:, 0]
+        trainer.run(
+            lambda i: detail_step(
+                field, cache, cfg.detail_batch_rays, trainer.generator, among=kept_rays
+            ),
+            check_end if stop_at is None else min(stop_at, check_end),
+        )
+        if trainer.step < check_end:  # stopped early on purpose
+            return {}
+    if checked and "detail_check" not in phases:  # the verdict, once (kept in the checkpoint)
+        without, with_branch = check_psnr(field, cache, torch.nonzero(held)[:, 0])
+        phases["detail_check"] = {
+            "psnr_without": without,
+            "psnr_with": with_branch,
+            "kept": with_branch > without,
+        }
+        if not phases["detail_check"]["kept"]:
+            print(
+                f"fit: the colour-detail branch renders the held-out training views worse "
+                f"({with_branch:.2f} dB against {without:.2f} without it): dropped"
+            )
+        trainer.checkpoint()
+    verdict = phases.get("detail_check", {})
+    if verdict.get("kept", True):
+        trainer.run(
+            lambda i: detail_step(field, cache, cfg.detail_batch_rays, trainer.generator),
+            stop_at,
+        )
+    else:  # the field renders as without the branch; no step is left to take
+        reset_branch(field)
+        trainer.skip_to_end()
     field.eval()
-    return {
+    stats = {
         "detail_steps": cfg.detail_steps,
         "detail_cached_rays": len(cache),
         "detail_samples_per_ray": len(cache.points) / max(len(cache), 1),
         "detail_cache_seconds": cache_seconds,
     }
+    if not verdict.get("kept", True):
+        stats["detail_steps_taken"] = check_end - cfg.iterations
+    if verdict:
+        stats.update(
+            detail_check_psnr_without=verdict["psnr_without"],
+            detail_check_psnr_with=verdict["psnr_with"],
+            detail_kept=verdict["kept"],
+        )
+    return stats
 
 
 # Options added after fits were recorded whose default is not what those fits did: a run
@@ -779,6 +846,7 @@ RECORDED_BEFORE = {
     "refine_rounds": 1,
     "band_width_start": 0.04,
     "detail_steps": 0,
+    "detail_check": 0.0,
 }
 
 # Settings that do not change the result: a checkpoint made with other values still resumes.
@@ -1019,7 +1087,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     detail_stats = {}
     if cfg.detail_steps:
         detail_stats = _train_detail(
-            cfg, trainer, field, sampler, pool, background, behind_capture, codes, stop_at
+            cfg, trainer, field, sampler, pool, background, behind_capture, codes, phases, stop_at
         )
         if trainer.step < trainer.iterations:  # stopped early on purpose
             return {"step": trainer.step}
@@ -1052,7 +1120,8 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     if detail_stats:
         detail_seconds = trainer.seconds - main_seconds
         detail_stats["detail_seconds"] = detail_seconds
-        rate = cfg.detail_steps * cfg.detail_batch_rays / max(detail_seconds, 1e-9)
+        taken = detail_stats.get("detail_steps_taken", cfg.detail_steps)
+        rate = taken * cfg.detail_batch_rays / max(detail_seconds, 1e-9)
         detail_stats["detail_rays_per_second"] = rate
     metrics.update(
         {

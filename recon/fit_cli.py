@@ -43,6 +43,8 @@ def run(args: argparse.Namespace) -> int:
     detail = ""
     if metrics.get("detail_steps"):
         detail = f" + {metrics['detail_steps']} colour-detail steps"
+        if metrics.get("detail_kept") is False:  # dropped by the check
+            detail = f" + {metrics['detail_steps_taken']} colour-detail steps (branch dropped)"
     print(
         f"fit: {metrics['iterations']} steps{detail} in {metrics['train_seconds']:.1f} s "
         f"({metrics['rays_per_second']:.0f} rays/s x {metrics['samples_per_ray']} samples/ray "

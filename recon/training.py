@@ -447,6 +447,12 @@ class Trainer:
         bar.close()
         return self.step >= self.iterations
 
+    def skip_to_end(self) -> None:
+        """Ends training here, as if the remaining steps had been taken (a stage that has
+        decided they would teach nothing), with a checkpoint."""
+        self.step = self.iterations
+        self.checkpoint()
+
     # ---- after training ----------------------------------------------------------------------
     def publish(self) -> None:
         """Writes log.json and moves work_dir to `directory`, replacing the old results."""

@@ -1,5 +1,6 @@
 """Template fitting on a tiny self-made run directory: loss goes down, outputs, exact resume."""
 
+import math
 import shutil
 from dataclasses import replace
 
@@ -79,6 +80,7 @@ TINY = dict(
     lr_mlp=1e-2,
     detail_steps=6,
     detail_batch_rays=128,
+    detail_check=0.0,  # the check's own test turns it on
 )
 
 
@@ -667,7 +669,17 @@ def test_a_fresh_detail_branch_renders_as_the_field_without_it():
 def test_the_detail_cache_renders_the_training_rays_as_the_field_does(tiny_run, tmp_path):
     """The cached samples' composite is the rendered colour (up to the samples left out, each
     below MIN_WEIGHT), the detail steps lower the loss and train only the detail branch."""
-    from recon.colour_detail import MIN_WEIGHT, build_detail_cache, detail_rays, detail_step
+    from recon.colour_detail import (
+        CHECK_EVERY,
+        MIN_WEIGHT,
+        build_detail_cache,
+        check_psnr,
+        check_views,
+        detail_rays,
+        detail_step,
+        reset_branch,
+    )
+    from recon.colour_detail import composite as detail_composite
     from recon.fit import build_ray_pool, load_views
     from render.renderer import render_rays
 
@@ -695,6 +707,23 @@ def test_the_detail_cache_renders_the_training_rays_as_the_field_does(tiny_run, 
     composite = colour + (1 - cache.opacity[:, None]) * cache.behind
     gap = (composite - rendered["rgb"]).abs().max().item()
     assert gap <= 10 * MIN_WEIGHT  # the samples below MIN_WEIGHT, nothing else
+    everything = torch.arange(len(cache))
+    with torch.no_grad():
+        torch.testing.assert_close(detail_composite(field, cache, everything), composite)
+    # the check's PSNR without / with the branch; with a zeroed branch the two agree
+    without, with_branch = check_psnr(field, cache, everything, chunk=777)
+    error = ((composite - cache.target) ** 2).mean()
+    assert with_branch == pytest.approx(-10 * math.log10(error.item()), abs=1e-4)
+    held = check_views(pool.view[rays], int(pool.view.max()) + 1)
+    views = pool.view[rays][held].unique().tolist()
+    assert views == list(range(CHECK_EVERY // 2, int(pool.view.max()) + 1, CHECK_EVERY))
+    j = int(torch.nonzero(held)[0, 0])  # drawn among one ray: the loss is that ray's error
+    with torch.no_grad():
+        one = detail_step(field, cache, 8, torch.Generator(), among=torch.tensor([j]))["rgb"]
+    assert one.item() == pytest.approx(((composite[j] - cache.target[j]) ** 2).mean().item())
+    reset_branch(field)
+    assert check_psnr(field, cache, everything)[1] == pytest.approx(without, abs=1e-5)
+    torch.nn.init.normal_(field.detail_net[-1].weight, std=0.5)
     # edge pixels out when the fit box-filters them
     assert len(detail_rays(pool, True, torch.Generator())) == int((~pool.edge).sum())
 
@@ -712,3 +741,25 @@ def test_the_detail_cache_renders_the_training_rays_as_the_field_does(tiny_run, 
         opt.step()
     assert detail_step(field, cache, len(cache), generator)["rgb"].item() < 0.7 * full
     assert all(p.grad is None for p in field.color_net.parameters())
+
+
+def test_the_detail_check_keeps_or_drops_the_branch_and_resumes_exactly(tiny_run, tmp_path):
+    """--detail-check: the first steps leave every 6th training view out; the verdict (the
+    branch kept only if it renders those views' rays better) is recorded and survives a stop
+    on either side of it; a dropped branch renders as none (its last layer zero)."""
+    cfg = FitConfig(iterations=10, **{**TINY, "detail_steps": 8, "detail_check": 0.5})
+    straight = _copy(tiny_run, tmp_path / "a")
+    metrics = fit_template(straight.root, cfg, progress=False)
+    without, with_branch = metrics["detail_check_psnr_without"], metrics["detail_check_psnr_with"]
+    assert metrics["detail_kept"] == (with_branch > without)
+    field, _ = load_template(straight.root)
+    last = field.detail_net[-1].weight
+    assert bool((last == 0).all()) != metrics["detail_kept"]
+    resumed = _copy(tiny_run, tmp_path / "b")
+    assert fit_template(resumed.root, cfg, progress=False, stop_at=12) == {"step": 12}
+    again = fit_template(resumed.root, cfg, progress=False)
+    assert again["detail_check_psnr_with"] == with_branch
+    a = torch.load(straight.template / "field.pt", weights_only=True)["field"]
+    b = torch.load(resumed.template / "field.pt", weights_only=True)["field"]
+    for k, v in a.items():
+        torch.testing.assert_close(b[k], v, rtol=0, atol=0)
