@@ -15,6 +15,14 @@ colour logits, on the cached samples of many rays per step (`detail_step`: 5-12x
 second of a main step). Density, the geometry feature and the main colour head stay as the main
 fit left them, so the geometry the edits and the feature field build on does not move.
 
+The check (`--detail-check`, `check_views` / `check_psnr`). On a sparse ring whose template
+fails (dinoSparseRing: 14 views, the head a blotchy mass) the branch memorises the few views and
+paints view-dependent speckle onto the wrong surface (held-out -0.6 dB). So the phase's first
+steps leave every CHECK_EVERY-th training view out; the branch is kept only if it then renders
+those views' cached rays better than the field without it (dinoSparseRing 27.6 -> 25.2 dB after
+300 steps: dropped, zeroed by `reset_branch`; the oxford-dinosaur 25.6 -> 25.9: kept), and then
+trains on all the rays (leaving the views out for good costs the dinosaur 0.4 dB).
+
 When the main fit box-filters (`--train-supersample` > 1) the masks' edge pixels are left out:
 such a pixel is part object, part background, and one cached centre ray cannot match its mean.
 """
