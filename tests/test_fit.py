@@ -743,7 +743,9 @@ def test_the_detail_cache_renders_the_training_rays_as_the_field_does(tiny_run, 
     assert all(p.grad is None for p in field.color_net.parameters())
 
 
-def test_the_detail_check_keeps_or_drops_the_branch_and_resumes_exactly(tiny_run, tmp_path):
+def test_the_detail_check_keeps_or_drops_the_branch_and_resumes_exactly(
+    tiny_run, tmp_path, monkeypatch
+):
     """--detail-check: the first steps leave every 6th training view out; the verdict (the
     branch kept only if it renders those views' rays better) is recorded and survives a stop
     on either side of it; a dropped branch renders as none (its last layer zero)."""
@@ -763,3 +765,11 @@ def test_the_detail_check_keeps_or_drops_the_branch_and_resumes_exactly(tiny_run
     b = torch.load(resumed.template / "field.pt", weights_only=True)["field"]
     for k, v in a.items():
         torch.testing.assert_close(b[k], v, rtol=0, atol=0)
+    # a verdict against the branch: zeroed, the rest of the phase not run
+    monkeypatch.setattr("recon.colour_detail.check_psnr", lambda *args, **kw: (30.0, 20.0))
+    dropped = _copy(tiny_run, tmp_path / "c")
+    metrics = fit_template(dropped.root, cfg, progress=False)
+    assert metrics["detail_kept"] is False and metrics["detail_steps_taken"] == 4
+    field, _ = load_template(dropped.root)
+    assert not field.detail_net[-1].weight.any() and not field.detail_net[-1].bias.any()
+    assert torch.load(dropped.template / "checkpoint.pt", weights_only=True)["step"] == 18
