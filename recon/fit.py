@@ -813,7 +813,8 @@ def _train_detail(
             )
         trainer.checkpoint()
     verdict = phases.get("detail_check", {})
-    if verdict.get("kept", True):
+    kept = verdict.get("kept", True)  # no check: kept
+    if kept:
         trainer.run(
             lambda i: detail_step(field, cache, cfg.detail_batch_rays, trainer.generator),
             stop_at,
@@ -828,7 +829,7 @@ def _train_detail(
         "detail_samples_per_ray": len(cache.points) / max(len(cache), 1),
         "detail_cache_seconds": cache_seconds,
     }
-    if not verdict.get("kept", True):
+    if not kept:
         stats["detail_steps_taken"] = check_end - cfg.iterations
     if verdict:
         stats.update(
