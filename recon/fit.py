@@ -53,15 +53,38 @@ from render.sampler import BandSampler, ProxyRaycaster, RayHits, UniformSampler
 from render.template_field import Background, TemplateField, TemplateFieldConfig
 
 # What `--preset` sets (options given explicitly win). Timings: 2 cores, 36 views of 256 px.
+# The cheaper step of fast and default (a 64-wide density head, 12 band samples: ~1.3x the
+# rays per second) held the held-out PSNR of every benchmark case within its seeds' spread
+# (bench/RESULTS.md, thirty-eighth session); quality keeps the wider, denser step.
+_CHEAP_STEP = {"density_hidden": 64, "band_samples": 12}
 PRESETS: dict[str, dict[str, int]] = {
     # ~30 s: a first look
-    "fast": {"iterations": 300, "batch_rays": 1024, "log2_table": 17, "detail_steps": 300},
+    "fast": {
+        "iterations": 300,
+        "batch_rays": 1024,
+        "log2_table": 17,
+        "detail_steps": 300,
+        **_CHEAP_STEP,
+    },
     # <= 5 min
-    "default": {"iterations": 1500, "batch_rays": 2048, "log2_table": 17, "detail_steps": 1500},
+    "default": {
+        "iterations": 1500,
+        "batch_rays": 2048,
+        "log2_table": 17,
+        "detail_steps": 1500,
+        **_CHEAP_STEP,
+    },
     # 2^19 rows per level: fewer hash collisions (spot +0.5 dB at 1500 steps), ~15 % slower;
     # colour-detail steps as the default's (3000 fitted the dinosaur's training views closer,
     # its held-out views no better)
-    "quality": {"iterations": 3500, "batch_rays": 4096, "log2_table": 19, "detail_steps": 1500},
+    "quality": {
+        "iterations": 3500,
+        "batch_rays": 4096,
+        "log2_table": 19,
+        "detail_steps": 1500,
+        "density_hidden": 128,
+        "band_samples": 16,
+    },
 }
 
 
@@ -103,8 +126,8 @@ class FitConfig(LoopOptions):
     preset: str = option(
         "default",
         "time/quality trade-off: fast (~30 s), default (<= 5 min), quality (<= 20 min) on 2 "
-        "cores for 36 views of 256 px; sets --iterations, --batch-rays and --log2-table "
-        "unless given",
+        "cores for 36 views of 256 px; sets --iterations, --batch-rays, --log2-table, "
+        "--detail-steps, --density-hidden and --band-samples unless given",
         choices=list(PRESETS),
     )
     iterations: int | None = option(
@@ -139,8 +162,11 @@ class FitConfig(LoopOptions):
         high=24,
     )
     levels: int = option(16, "hash-grid levels", low=1, high=32)
-    density_hidden: int = option(
-        128, "hidden width of the density MLP (one hidden layer after the hash grid)", low=1
+    density_hidden: int | None = option(
+        None,
+        "hidden width of the density MLP (one hidden layer after the hash grid; None: the "
+        "preset's: fast and default 64, quality 128)",
+        low=1,
     )
     detail_steps: int | None = option(
         None,
@@ -177,8 +203,11 @@ class FitConfig(LoopOptions):
     sampler: str = option(
         "band", "ray sampler: proxy band or the paper's uniform 64+128", choices=["band", "uniform"]
     )
-    band_samples: int = option(
-        16, "samples in the band [t_hit - d, t_hit + d] (band sampler)", low=1
+    band_samples: int | None = option(
+        None,
+        "samples in the band [t_hit - d, t_hit + d] (band sampler; None: the preset's: fast "
+        "and default 12, quality 16); renders and edits of the template use the same",
+        low=1,
     )
     coarse_samples: int = option(
         4,
@@ -848,6 +877,7 @@ RECORDED_BEFORE = {
     "band_width_start": 0.04,
     "detail_steps": 0,
     "detail_check": 0.0,
+    "density_hidden": 128,
 }
 
 # Settings that do not change the result: a checkpoint made with other values still resumes.

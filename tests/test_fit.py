@@ -279,6 +279,11 @@ def test_presets_fill_only_the_options_not_given():
     assert resolve_preset(FitConfig(detail_steps=0)).detail_steps == 0
     mixed = resolve_preset(FitConfig(preset="quality", iterations=7))
     assert (mixed.iterations, mixed.batch_rays, mixed.log2_table) == (7, 4096, 19)
+    # the cheaper step for fast and default, the wider and denser one for quality
+    assert (default.density_hidden, default.band_samples) == (64, 12)
+    assert (mixed.density_hidden, mixed.band_samples) == (128, 16)
+    given = resolve_preset(FitConfig(density_hidden=32, band_samples=20))
+    assert (given.density_hidden, given.band_samples) == (32, 20)
     with pytest.raises(SineError, match="--preset"):
         resolve_preset(FitConfig(preset="slow"))
 
@@ -648,7 +653,7 @@ def _detail_field(max_resolution=64):
     from recon.fit import field_config
 
     cfg = FitConfig(iterations=10, **{**TINY, "max_resolution": max_resolution, "detail_steps": 5})
-    return TemplateField(field_config(cfg))
+    return TemplateField(field_config(resolve_preset(cfg)))
 
 
 def test_a_fresh_detail_branch_renders_as_the_field_without_it():
