@@ -71,6 +71,7 @@ TINY = dict(
     log2_table=12,
     max_resolution=64,
     band_samples=8,
+    density_hidden=128,  # the width these tiny fits' expectations were measured with
     coarse_samples=2,
     log_every=5,
     checkpoint_every=5,
