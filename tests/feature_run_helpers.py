@@ -17,6 +17,7 @@ TINY_FIT = dict(
     levels=8,
     max_resolution=128,
     band_samples=8,
+    density_hidden=128,  # the width the edit tests' expectations were measured with
     coarse_samples=2,
     previews=0,
     checkpoint_every=1000,
