@@ -501,27 +501,32 @@ def silhouette_edge(mask: np.ndarray) -> np.ndarray:
 
 
 def build_ray_pool(views, sampler, device: torch.device) -> RayPool:
+    """Casts every training pixel's ray (only the sampler's `pixel_window` of each view: the
+    others miss) and keeps those that hit, view by view in row-major order."""
     o_all, d_all, c_all, m_all, h_all, miss, v_all, axes = [], [], [], [], [], [], [], []
     e_all = []
     n_total = 0
     has_masks = all(m is not None for _, _, m in views)
     for i, (cam, image, mask) in enumerate(views):
-        o, d = cam.rays()
+        window = getattr(sampler, "pixel_window", lambda c: None)(cam)
+        chosen = torch.from_numpy(cam.window_pixels(window)).to(device)  # [N]
+        o, d = cam.rays(None if window is None else cam.pixel_grid()[chosen.cpu().numpy()])
         o, d = torch.from_numpy(o).to(device), torch.from_numpy(d).to(device)
         hits = sampler.cast(o, d)
-        hit = hits.hit
+        hit = torch.zeros(cam.height * cam.width, dtype=torch.bool, device=device)
+        hit[chosen] = hits.hit  # [H*W]
         rgb = torch.from_numpy(image.reshape(-1, 3)).to(device)
         m = torch.from_numpy(mask.reshape(-1)).float().to(device) if mask is not None else None
-        n_total += len(o)
-        o_all.append(o[hit])
-        d_all.append(d[hit])
+        n_total += len(hit)
+        o_all.append(o[hits.hit])
+        d_all.append(d[hits.hit])
         c_all.append(rgb[hit])
         m_all.append(m[hit] if m is not None else torch.ones(int(hit.sum()), device=device))
         v_all.append(torch.full((int(hit.sum()),), i, dtype=torch.int64, device=device))
         inside = mask if mask is not None else hit.reshape(cam.height, cam.width).cpu().numpy()
         e_all.append(torch.from_numpy(silhouette_edge(inside).reshape(-1)).to(device)[hit])
         axes.append(pixel_axes(cam))
-        h_all.append(hits[hit])
+        h_all.append(hits[hits.hit])
         miss.append(rgb[~hit][:: max(1, int((~hit).sum()) // 2000 + 1)])
     origins = torch.cat(o_all)
     pool = RayPool(

@@ -115,6 +115,32 @@ class Camera:
         v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64) + 0.5
         return np.stack([u.ravel(), v.ravel()], axis=1)
 
+    def pixel_window(self, points: np.ndarray) -> tuple[int, int, int, int] | None:
+        """The pixels whose centre ray can meet the convex hull of world points [N, 3] (a mesh's
+        vertices: its image lies in the hull of theirs) -> (row0, row1, col0, col1), rows
+        [row0, row1) and columns [col0, col1), with one pixel of margin, clipped to the image
+        (empty when it falls outside); None when some point is not in front of the camera
+        (its image is then unbounded: every pixel may see it)."""
+        uv, z = self.project(points)
+        if len(z) == 0:
+            return 0, 0, 0, 0
+        if not np.all(z > 1e-9):
+            return None
+        # centre u = col + 0.5 within [u_min, u_max] <=> col in [u_min - 0.5, u_max - 0.5]
+        lo = np.floor(uv.min(0) - 0.5) - 1
+        hi = np.floor(uv.max(0) - 0.5) + 2
+        size = np.array([self.width, self.height])
+        (col0, row0), (col1, row1) = np.clip(lo, 0, size), np.clip(hi, 0, size)
+        return int(row0), int(max(row0, row1)), int(col0), int(max(col0, col1))
+
+    def window_pixels(self, window: tuple[int, int, int, int] | None) -> np.ndarray:
+        """Row-major indices [N] int64 into the H*W pixels of a `pixel_window` (None: all)."""
+        if window is None:
+            return np.arange(self.height * self.width)
+        row0, row1, col0, col1 = window
+        rows, cols = np.mgrid[row0:row1, col0:col1]
+        return (rows * self.width + cols).ravel().astype(np.int64)
+
     def rays(self, pixels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Ray origins [N, 3] and unit directions [N, 3] (float32) through `pixels` [N, 2].
 

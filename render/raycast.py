@@ -8,7 +8,8 @@ hit along a ray, over Open3D's `RaycastingScene` or embreex (both Embree underne
   barycentrics, unit geometric normals. numpy rays give numpy arrays; torch rays give tensors on
   the rays' device.
 - `cast_camera(cam)` / `depth(cam)` / `silhouette(cam)`: one ray per pixel centre of a
-  `render.cameras.Camera` (hits, camera-z depth [H, W], silhouette [H, W] bool).
+  `render.cameras.Camera` (hits, camera-z depth [H, W], silhouette [H, W] bool); only the
+  pixels where the mesh's image can lie are cast (`Camera.pixel_window`).
 - `cast_all(origins, dirs, max_hits)` -> `MultiHits`: the first `max_hits` hits of each ray in
   order (a band around thin parts, entering and leaving a surface).
 
@@ -164,8 +165,23 @@ class MeshRaycaster:
         return hits.to_torch(origins.device) if isinstance(origins, torch.Tensor) else hits
 
     def cast_camera(self, cam) -> MeshHits:
-        """One ray per pixel centre of `cam` (row-major, `Camera.rays`) -> hits [H*W]."""
-        return self.cast(*cam.rays())
+        """One ray per pixel centre of `cam` (row-major, `Camera.rays`) -> hits [H*W]. Only
+        the pixels of the mesh's `Camera.pixel_window` are cast; the others miss."""
+        window = cam.pixel_window(self.vertices)
+        if window is None:
+            return self.cast(*cam.rays())
+        chosen = cam.window_pixels(window)  # [N]
+        part = self.cast(*cam.rays(cam.pixel_grid()[chosen]))
+        n = cam.height * cam.width
+        hits = MeshHits(
+            np.full(n, np.inf, np.float32),
+            np.full(n, -1, np.int64),
+            np.zeros((n, 2), np.float32),
+            np.zeros((n, 3), np.float32),
+        )
+        for f in fields(MeshHits):
+            getattr(hits, f.name)[chosen] = getattr(part, f.name)
+        return hits
 
     def silhouette(self, cam) -> np.ndarray:
         """The mesh's silhouette [H, W] bool seen by `cam` (pixel centres that hit it)."""
@@ -173,10 +189,8 @@ class MeshRaycaster:
 
     def depth(self, cam) -> np.ndarray:
         """Camera-z depth [H, W] float32 of the mesh seen by `cam` (0 where no hit)."""
-        origins, dirs = cam.rays()  # [H*W, 3] each, float32
-        t = self.cast(origins, dirs).t
-        forward = cam.camera_to_world[:3, 2].astype(np.float32)
-        z = t * (dirs @ forward)
+        t = self.cast_camera(cam).t  # [H*W]
+        z = t * cam.z_per_unit_distance()
         z[~np.isfinite(z)] = 0.0
         return z.reshape(cam.height, cam.width).astype(np.float32)
 

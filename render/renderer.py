@@ -152,6 +152,21 @@ def render_rays_chunked(
     return out
 
 
+def _scatter_window(res: dict, chosen: torch.Tensor, camera, background) -> dict:
+    """`render_rays_chunked` results of the pixels `chosen` [N] (row-major indices) -> the
+    same for every pixel of `camera`, the others as rays that miss."""
+    n = camera.height * camera.width
+    zeros = torch.zeros(n, device=chosen.device)
+    full = {"rgb": _background(background, n, zeros).clone(), "opacity": zeros, "depth": zeros}
+    for k, v in res.items():
+        if k == "samples":
+            full[k] = v
+        else:
+            base = full[k] if k in full else v.new_zeros((n, *v.shape[1:]))
+            full[k] = base.index_copy(0, chosen, v)
+    return full
+
+
 EDGE_SPREAD = 0.05  # a pixel's sub-ray opacities differing by more: a silhouette crosses it
 
 
@@ -225,7 +240,14 @@ def _render_pixels(
 ) -> tuple[dict[str, np.ndarray], int, set[str]]:
     """The rays through `pixels` [N, 2] (None: every pixel centre) -> (each channel [N, C] as
     float32 numpy, "z" the camera depth; with `weigh_depths` the depths multiplied by the
-    opacity, to box-filter them; the field samples taken; the channels of one value, C = 1)."""
+    opacity, to box-filter them; the field samples taken; the channels of one value, C = 1).
+    Of a whole image only the sampler's `pixel_window` is rendered: the rays outside it miss
+    (the background colour, zero elsewhere)."""
+    chosen = None
+    window = getattr(sampler, "pixel_window", lambda cam: None)(camera) if pixels is None else None
+    if window is not None:
+        chosen = camera.window_pixels(window)  # [N]
+        pixels = camera.pixel_grid()[chosen]
     o, d = camera.rays(pixels)
     res = render_rays_chunked(
         field_query,
@@ -235,6 +257,9 @@ def _render_pixels(
         background,
         chunk,
     )
+    if chosen is not None:
+        res = _scatter_window(res, torch.from_numpy(chosen).to(device), camera, background)
+        pixels = None
     res["z"] = res["depth"] * torch.from_numpy(camera.z_per_unit_distance(pixels)).to(res["depth"])
     samples = int(res.pop("samples"))
     res.pop("hit", None)

@@ -122,6 +122,12 @@ class ProxyRaycaster:
         width = (corners * hits.barycentrics).sum(1)
         return torch.from_numpy(np.where(hits.hit, width, 0.0).astype(np.float32))
 
+    def pixel_window(self, cam) -> tuple[int, int, int, int] | None:
+        """The pixels of `cam` whose centre rays can hit the (inflated) proxy:
+        `Camera.pixel_window` of its vertices (None: any pixel may)."""
+        outer = self._inflated if self._inflated is not None else self._scene
+        return cam.pixel_window(outer.vertices)
+
     def cast(self, origins: torch.Tensor, dirs: torch.Tensor) -> RayHits:
         """origins [R, 3], unit dirs [R, 3] -> RayHits (on the rays' device)."""
         o, d = rays_numpy(origins, dirs)
@@ -187,6 +193,11 @@ class BandSampler:
     def cast(self, origins: torch.Tensor, dirs: torch.Tensor) -> RayHits:
         return self.raycaster.cast(origins, dirs)
 
+    def pixel_window(self, cam) -> tuple[int, int, int, int] | None:
+        """The pixels of `cam` whose centre rays can need the field (the others miss the
+        inflated proxy): `Camera.pixel_window`; None: any pixel may."""
+        return self.raycaster.pixel_window(cam)
+
     def band(self, hits: RayHits) -> tuple[torch.Tensor, torch.Tensor]:
         """Band [lo, hi] per ray ([R], [R]) from hits. Not clipped to the sphere interval: a
         warped proxy may reach beyond the sphere (an edit that makes the object taller)."""
@@ -226,6 +237,10 @@ class UniformSampler:
     @property
     def samples_per_ray(self) -> int:
         return self.n_coarse + self.n_importance
+
+    def pixel_window(self, cam) -> None:
+        """Any pixel's ray may cross the sphere (no window)."""
+        return None
 
     def cast(self, origins: torch.Tensor, dirs: torch.Tensor) -> RayHits:
         near, far, hit = sphere_interval(origins, dirs, self.radius)

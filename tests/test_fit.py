@@ -779,3 +779,26 @@ def test_the_detail_check_keeps_or_drops_the_branch_and_resumes_exactly(
     field, _ = load_template(dropped.root)
     assert not field.detail_net[-1].weight.any() and not field.detail_net[-1].bias.any()
     assert torch.load(dropped.template / "checkpoint.pt", weights_only=True)["step"] == 18
+
+
+def test_ray_pool_casts_only_the_proxy_window(tiny_run):
+    """The pool cast through each view's pixel window of the inflated proxy is the pool of
+    casting every pixel, tensor for tensor."""
+    from recon.fit import build_ray_pool, load_views
+
+    class EveryPixel:  # the same sampler without `pixel_window`
+        def __init__(self, sampler):
+            self.cast = sampler.cast
+
+    sampler = make_sampler(resolve_preset(FitConfig(**TINY), tiny_run), tiny_run)
+    views = load_views(tiny_run, "train")
+    cam = views[0][0]
+    row0, row1, col0, col1 = sampler.pixel_window(cam)
+    assert (row1 - row0) * (col1 - col0) < cam.width * cam.height  # something is culled
+    windowed = build_ray_pool(views, sampler, torch.device("cpu"))
+    every = build_ray_pool(views, EveryPixel(sampler), torch.device("cpu"))
+    assert windowed.n_total == every.n_total and len(windowed.origins) > 0
+    for name in ("origins", "dirs", "rgb", "mask", "miss_rgb", "view", "edge", "pixel_axes"):
+        assert torch.equal(getattr(windowed, name), getattr(every, name)), name
+    for name in ("t_hit", "t_inflated", "near", "far", "t_exit"):
+        assert torch.equal(getattr(windowed.hits, name), getattr(every.hits, name)), name

@@ -163,3 +163,25 @@ def test_open3d_and_embree_agree_on_a_real_mesh():
         later = np.isfinite(hits.t[:, 1:])
         assert np.all(hits.t[:, 1:][later] > hits.t[:, :-1][later])
         assert np.all((hits.triangle >= 0) == np.isfinite(hits.t))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_cast_camera_casts_the_mesh_window_only(backend):
+    """`cast_camera` casts the pixels of the mesh's `pixel_window` and gives the hits of
+    casting every pixel; a mesh out of view has an empty window and no hit."""
+    v, f = _unit_cube()
+    cam = Camera(
+        32, 24, 30.0, 30.0, 16.0, 12.0, camera_to_world=look_at([2.0, -4.0, 1.0], [0, 0, 0])
+    )
+    rc = MeshRaycaster((v, f), backend=backend)
+    row0, row1, col0, col1 = cam.pixel_window(rc.vertices)
+    assert 0 < (row1 - row0) * (col1 - col0) < 32 * 24
+    every = rc.cast(*cam.rays())
+    window = rc.cast_camera(cam)
+    assert every.hit.sum() > 10
+    for name in ("t", "triangle", "uv", "normal"):
+        np.testing.assert_array_equal(getattr(window, name), getattr(every, name))
+    right = cam.camera_to_world[:3, 0]  # 6 units to the right at depth ~4.6: u > 50
+    away = MeshRaycaster((v + 6.0 * right, f), backend=backend)
+    row0, row1, col0, col1 = cam.pixel_window(away.vertices)
+    assert (row1 - row0) * (col1 - col0) == 0 and not away.silhouette(cam).any()

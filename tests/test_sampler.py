@@ -296,3 +296,44 @@ def test_render_image_supersample_integrates_each_pixel():
     big = render_image(cam.resized(80, 60), _solid_sphere_field, sampler, torch.ones(3))
     for i, j in ((0, 0), (1, 3), (4, 2)):
         np.testing.assert_allclose(subs["rgb_subpixels"][5 * i + j], big["rgb"][i::5, j::5])
+
+
+class _NoWindow:
+    """A sampler without `pixel_window`: every pixel's ray is cast."""
+
+    def __init__(self, sampler):
+        self.sampler = sampler
+
+    def cast(self, origins, dirs):
+        return self.sampler.cast(origins, dirs)
+
+    def sample(self, hits, perturb=False, generator=None):
+        return self.sampler.sample(hits, perturb, generator)
+
+
+def test_pixel_window_culls_nothing_the_proxy_can_hit():
+    """A whole-image render casts only the inflated proxy's pixel window: every channel equals
+    the render that casts every pixel, bit for bit (the sphere off-centre, so the window is a
+    corner of the image); a camera inside the proxy's hull gets no window."""
+    from render.cameras import Camera, look_at
+
+    cam = Camera(
+        40, 30, 20.0, 20.0, 20.0, 15.0, camera_to_world=look_at(np.array([0, -3.0, 0]), np.zeros(3))
+    )
+    sphere = _sphere(0.3).translate((0.6, 0.0, 0.3))
+    sampler = BandSampler(ProxyRaycaster(sphere, inflate=0.05), n_band=8, n_coarse=2)
+    row0, row1, col0, col1 = sampler.pixel_window(cam)
+    assert 0 < (row1 - row0) * (col1 - col0) < 0.25 * 40 * 30
+    # the sphere's centre (0.6, 0, 0.3) at distance 3: u = 20 + 20 * 0.2, v = 15 - 20 * 0.1
+    assert col0 < 24 < col1 and row0 < 13 < row1
+    for s in (1, 2):
+        culled = render_image(cam, _solid_sphere_field, sampler, torch.ones(3), supersample=s)
+        full = render_image(
+            cam, _solid_sphere_field, _NoWindow(sampler), torch.ones(3), supersample=s
+        )
+        assert culled["opacity"].sum() > 1.0
+        for k in ("rgb", "opacity", "depth", "z", "feat"):
+            np.testing.assert_array_equal(culled[k], full[k])
+    inside = Camera(8, 6, 8.0, 8.0, 4.0, 3.0, camera_to_world=look_at([0.6, 0.0, 0.3], [0, 0, 0]))
+    assert sampler.pixel_window(inside) is None
+    assert UniformSampler().pixel_window(cam) is None
