@@ -200,3 +200,41 @@ def test_refine_run_uses_the_training_views_masks_and_the_runs_proxy_settings(tm
     assert radial_error(mesh).mean() < 0.018
     assert stats["silhouette_iou_after"] > stats["silhouette_iou_before"] + 0.08
     assert len(o3d.io.read_triangle_mesh(str(run.proxy_mesh)).triangles) == 3480
+
+
+class TwoBallField(torch.nn.Module):
+    """SphereField's ball and a small one beside it (radius 0.05, centre 0.68 from the origin:
+    0.13 apart), a part of the object that touches nothing."""
+
+    small_centre = torch.tensor([0.0, 0.0, 0.68])
+
+    def forward(self, x, d):
+        out = SphereField()(x, d)
+        small = torch.sigmoid((0.05 - (x - self.small_centre).norm(dim=-1)) / 0.001)
+        out["sigma"] = out["sigma"] + 1000.0 * small
+        return out
+
+
+def test_refinement_keeps_a_small_separate_part():
+    """A part of ~1 % of the body's triangles, apart from it (as the carving leaves a hand cut
+    off at its wrist): the refinement keeps it (--refine-min-component 0.002); recon's 0.02
+    would drop it, and its band with it."""
+    cams = cameras(128)
+    masks = [a | b for a, b in zip(sphere_masks(cams, np.zeros(3), R),
+             sphere_masks(cams, np.array([0.0, 0.0, 0.68]), 0.05), strict=True)]  # fmt: skip
+    body = o3d.geometry.TriangleMesh.create_sphere(0.52, 30)
+    part = o3d.geometry.TriangleMesh.create_sphere(0.07, 12).translate((0.0, 0.0, 0.68))
+    old = body + part
+    sampler = BandSampler(ProxyRaycaster(old, inflate=0.05), n_band=24, n_coarse=4)
+
+    def parts(min_component):
+        mesh, _ = refine_proxy(
+            TwoBallField(), sampler, cams, masks, ProxyParams(), old,
+            RefineConfig(refine_min_component=min_component), progress=False,
+        )  # fmt: skip
+        _, counts, _ = mesh.cluster_connected_triangles()
+        return sorted(np.asarray(counts).tolist(), reverse=True)
+
+    kept = parts(RefineConfig().refine_min_component)
+    assert len(kept) == 2 and 0.002 < kept[1] / kept[0] < 0.02
+    assert len(parts(0.02)) == 1
