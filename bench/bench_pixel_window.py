@@ -64,7 +64,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     run = RunDir(args.run)
-    field, background, cfg = load_fitted(run)
+    field, background, cfg = load_fitted(run.root)
     sampler = make_sampler(cfg, run)
     every = EveryPixel(sampler)
     train, test = load_views(run, "train"), load_views(run, "test")
