@@ -271,6 +271,15 @@ class FitConfig(LoopOptions):
     refine_views: int = option(
         16, "training views rendered for the proxy refinement (evenly spaced; 0: all)", low=0
     )
+    refine_min_component: float = option(
+        0.002,
+        "separate parts of a refined proxy are kept down to this fraction of the largest one's "
+        "triangles (the carving can cut a part off at a thin joint: the dinosaur's hand before "
+        "its belly, 1.3 %%, was dropped at recon's 0.02, its band with it; held-out object PSNR "
+        "24.35 -> 25.00 dB on that draw; TSDF specks stay below 0.1 %%)",
+        low=0.0,
+        high=1.0,
+    )
     train_supersample: int | None = option(
         None,
         "train on the box filter of s x s rays per pixel (the mean of the sub-pixel rays' "
@@ -687,7 +696,9 @@ def refine_with_field(
     before/after, triangles, seconds; the new proxy's IoU per training view or None)."""
     from recon.proxy_refine import RefineConfig, refine_run
 
-    refine_cfg = RefineConfig(refine_views=cfg.refine_views)
+    refine_cfg = RefineConfig(
+        refine_views=cfg.refine_views, refine_min_component=cfg.refine_min_component
+    )
     mesh, stats = refine_run(
         run, field, sampler, refine_cfg, device, progress, proxy=proxy, old_ious=old_ious
     )
@@ -884,6 +895,7 @@ RECORDED_BEFORE = {
     "detail_steps": 0,
     "detail_check": 0.0,
     "density_hidden": 128,
+    "refine_min_component": 0.02,
 }
 
 # Settings that do not change the result: a checkpoint made with other values still resumes.

@@ -84,9 +84,8 @@ class RefineConfig:
     refine_min_component: float = option(
         0.002,
         "refine: separate parts of the fused proxy are kept down to this fraction of the "
-        "largest one's triangles (recon's --min-component, 0.02, drops real parts the carving "
-        "cut off at a thin joint: the dinosaur's hand before its belly, 1.3 %%, whose band was "
-        "then gone for good; TSDF specks stay below 0.1 %%)",
+        "largest one's triangles (recon's --min-component 0.02 drops real parts the carving "
+        "cut off at a thin joint; `sine fit --refine-min-component`)",
         low=0.0,
         high=1.0,
     )
