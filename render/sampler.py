@@ -123,10 +123,12 @@ class ProxyRaycaster:
         return torch.from_numpy(np.where(hits.hit, width, 0.0).astype(np.float32))
 
     def pixel_window(self, cam) -> tuple[int, int, int, int] | None:
-        """The pixels of `cam` whose centre rays can hit the (inflated) proxy:
-        `Camera.pixel_window` of its vertices (None: any pixel may)."""
-        outer = self._inflated if self._inflated is not None else self._scene
-        return cam.pixel_window(outer.vertices)
+        """The pixels of `cam` whose centre rays can hit the proxy or its inflated copy:
+        `Camera.pixel_window` of both's vertices (None: any pixel may)."""
+        points = [self._scene.vertices]
+        if self._inflated is not None:
+            points.append(self._inflated.vertices)
+        return cam.pixel_window(np.concatenate(points))
 
     def cast(self, origins: torch.Tensor, dirs: torch.Tensor) -> RayHits:
         """origins [R, 3], unit dirs [R, 3] -> RayHits (on the rays' device)."""
