@@ -197,7 +197,7 @@ class BandSampler:
 
     def pixel_window(self, cam) -> tuple[int, int, int, int] | None:
         """The pixels of `cam` whose centre rays can need the field (the others miss the
-        inflated proxy): `Camera.pixel_window`; None: any pixel may."""
+        proxy and its inflated copy): `ProxyRaycaster.pixel_window`; None: any pixel may."""
         return self.raycaster.pixel_window(cam)
 
     def band(self, hits: RayHits) -> tuple[torch.Tensor, torch.Tensor]:
