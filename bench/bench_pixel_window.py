@@ -74,8 +74,9 @@ def main() -> None:
     def pool(s):
         return build_ray_pool(train, s, device)
 
-    (t_win, a), (t_all, b) = timed(lambda: pool(sampler), args.repeats), timed(
-        lambda: pool(every), args.repeats
+    (t_win, a), (t_all, b) = (
+        timed(lambda: pool(sampler), args.repeats),
+        timed(lambda: pool(every), args.repeats),
     )
     same = all(torch.equal(getattr(a, k), getattr(b, k)) for k in ("origins", "rgb", "miss_rgb"))
     rows.append(("ray pool", f"{len(train)} training views", t_win, t_all, same))
