@@ -832,7 +832,7 @@ def _train_detail(
     view_codes = codes.detach() if cfg.appearance_dim else None
     cache = build_detail_cache(field, sampler, pool, rays, behind, view_codes, cfg.eval_chunk)
     cache_seconds = time.perf_counter() - t_cache
-    held = check_views(pool.view[rays], int(pool.view.max()) + 1 if len(rays) else 0)
+    held = check_views(pool.view[rays], len(pool.pixel_axes))  # every training view
     check_end = cfg.iterations + round(cfg.detail_check * cfg.detail_steps)
     checked = bool(held.any()) and check_end > cfg.iterations
     if checked and trainer.step < check_end:  # first without the held-out views
