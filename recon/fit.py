@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from recon.proxy_mesh import write_mesh
+from recon.proxy_refine import REFINE_MIN_COMPONENT
 from recon.rundir import RunDir
 from recon.selfcheck import require_trusted_poses
 from recon.training import RUNTIME_KEYS, LoopOptions, Trainer, exponential_decay, loop_options
@@ -49,7 +50,7 @@ from render.io import (
 )
 from render.metrics import masked_psnr, masked_ssim, psnr, psnr_of_mse
 from render.renderer import render_image, render_rays
-from render.sampler import BandSampler, ProxyRaycaster, RayHits, UniformSampler
+from render.sampler import BandSampler, ProxyRaycaster, RayHits, UniformSampler, sampler_window
 from render.template_field import Background, TemplateField, TemplateFieldConfig
 
 # What `--preset` sets (options given explicitly win). Timings: 2 cores, 36 views of 256 px.
@@ -272,7 +273,7 @@ class FitConfig(LoopOptions):
         16, "training views rendered for the proxy refinement (evenly spaced; 0: all)", low=0
     )
     refine_min_component: float = option(
-        0.002,
+        REFINE_MIN_COMPONENT,
         "separate parts of a refined proxy are kept down to this fraction of the largest one's "
         "triangles (the carving can cut a part off at a thin joint: the dinosaur's hand before "
         "its belly, 1.3 %%, was dropped at recon's 0.02, its band with it; held-out object PSNR "
@@ -517,10 +518,9 @@ def build_ray_pool(views, sampler, device: torch.device) -> RayPool:
     n_total = 0
     has_masks = all(m is not None for _, _, m in views)
     for i, (cam, image, mask) in enumerate(views):
-        window = getattr(sampler, "pixel_window", lambda c: None)(cam)
-        chosen = torch.from_numpy(cam.window_pixels(window)).to(device)  # [N]
-        o, d = cam.rays(None if window is None else cam.pixel_grid()[chosen.cpu().numpy()])
-        o, d = torch.from_numpy(o).to(device), torch.from_numpy(d).to(device)
+        chosen, centres = cam.window_pixels(sampler_window(sampler, cam))  # [N], [N, 2]
+        chosen = torch.from_numpy(chosen).to(device)
+        o, d = (torch.from_numpy(a).to(device) for a in cam.rays(centres))
         hits = sampler.cast(o, d)
         hit = torch.zeros(cam.height * cam.width, dtype=torch.bool, device=device)
         hit[chosen] = hits.hit  # [H*W]

@@ -133,13 +133,17 @@ class Camera:
         (col0, row0), (col1, row1) = np.clip(lo, 0, size), np.clip(hi, 0, size)
         return int(row0), int(max(row0, row1)), int(col0), int(max(col0, col1))
 
-    def window_pixels(self, window: tuple[int, int, int, int] | None) -> np.ndarray:
-        """Row-major indices [N] int64 into the H*W pixels of a `pixel_window` (None: all)."""
+    def window_pixels(
+        self, window: tuple[int, int, int, int] | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The pixels of a `pixel_window` (None: all), row-major: their indices [N] int64 into
+        the H*W pixels and their centres [N, 2] (as `pixel_grid`'s rows, for `rays`)."""
         if window is None:
-            return np.arange(self.height * self.width)
+            return np.arange(self.height * self.width), self.pixel_grid()
         row0, row1, col0, col1 = window
         rows, cols = np.mgrid[row0:row1, col0:col1]
-        return (rows * self.width + cols).ravel().astype(np.int64)
+        centres = np.stack([cols.ravel(), rows.ravel()], axis=1).astype(np.float64) + 0.5
+        return (rows * self.width + cols).ravel().astype(np.int64), centres
 
     def rays(self, pixels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Ray origins [N, 3] and unit directions [N, 3] (float32) through `pixels` [N, 2].

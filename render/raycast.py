@@ -170,8 +170,8 @@ class MeshRaycaster:
         window = cam.pixel_window(self.vertices)
         if window is None:
             return self.cast(*cam.rays())
-        chosen = cam.window_pixels(window)  # [N]
-        part = self.cast(*cam.rays(cam.pixel_grid()[chosen]))
+        chosen, centres = cam.window_pixels(window)  # [N], [N, 2]
+        part = self.cast(*cam.rays(centres))
         n = cam.height * cam.width
         hits = MeshHits(
             np.full(n, np.inf, np.float32),

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from render import volume
-from render.sampler import RayHits
+from render.sampler import RayHits, sampler_window
 
 FieldQuery = Callable[[torch.Tensor, torch.Tensor], dict[str, torch.Tensor]]
 SKIP_CHANNELS = ("sigma", "geo_feat")
@@ -244,10 +244,9 @@ def _render_pixels(
     Of a whole image only the sampler's `pixel_window` is rendered: the rays outside it miss
     (the background colour, zero elsewhere)."""
     chosen = None
-    window = getattr(sampler, "pixel_window", lambda cam: None)(camera) if pixels is None else None
+    window = sampler_window(sampler, camera) if pixels is None else None
     if window is not None:
-        chosen = camera.window_pixels(window)  # [N]
-        pixels = camera.pixel_grid()[chosen]
+        chosen, pixels = camera.window_pixels(window)  # [N], [N, 2]
     o, d = camera.rays(pixels)
     res = render_rays_chunked(
         field_query,

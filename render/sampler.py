@@ -173,6 +173,12 @@ def samples_in_bins(edges: torch.Tensor, perturb: bool, generator=None):
     return lo + (hi - lo) * u, hi - lo
 
 
+def sampler_window(sampler, cam) -> tuple[int, int, int, int] | None:
+    """`sampler.pixel_window(cam)`; None (every pixel) for samplers without one."""
+    window = getattr(sampler, "pixel_window", None)
+    return None if window is None else window(cam)
+
+
 @dataclass
 class BandSampler:
     """Samples in a band around the proxy hit plus a few coarse ones over the sphere interval."""
