@@ -54,7 +54,11 @@ graph, F_dT queried in chunks of samples):
   near one view K showed outside the region keeps the template too (the part's mask may reach
   beyond what the user painted; what they saw and left stays in every view). `symmetric`: view
   K's lifted painting mirrored across the proxy's mirror plane counts as seen too (the mirrored
-  painted surface may change, the mirrored unpainted one stays). The 3D side of
+  painted surface may change, the mirrored unpainted one stays); `symmetric_auto` (default)
+  mirrors it without being asked where the proxy has a mirror plane and the semantic masks of
+  the surface view K did not see agree with the mirrored painting (IoU >= `symmetric_agreement`):
+  there the masks follow the part one DINO patch at a time, the mirror places its edge (spot's
+  far flank, whose part ends at a plane no feature marks). The 3D side of
   L_reg (the paper's holds F_dG to zero at background points; here F_dT): w_reg_field
   ||m'(x)||^2 (weighted by the samples' rendering weights) at the samples of the step's
   unedited pixels, so F_dT's hash table and MLP cannot leak the edit's colour over the whole
@@ -380,6 +384,21 @@ class TextureEditConfig(LoopOptions):
         "mirrored painted surface may change and, with --keep-seen, the mirrored unpainted "
         "surface keeps the template",
     )
+    symmetric_auto: bool = option(
+        True,
+        "without --symmetric, semantic masks: mirror view K's painting as --symmetric does when "
+        "the proxy has a clear mirror plane and the semantic masks agree with the mirrored "
+        "painting on the surface view K does not see (IoU >= --symmetric-agreement): the "
+        "mirror then places the part's edge there, where the masks place it one DINO patch "
+        "at a time (a painting the far side's masks do not follow is not mirrored)",
+    )
+    symmetric_agreement: float = option(
+        0.7,
+        "--symmetric-auto: the semantic masks' IoU with the mirrored painting, on the surface "
+        "view K does not see, from which the painting is mirrored",
+        low=0,
+        high=1,
+    )
     region_dilate: int = option(6, "pixels the automatic editable region is grown by", low=0)
     lift_tol: float = option(
         0.02,
@@ -431,6 +450,7 @@ RECORDED_BEFORE = {
     "quadratic_transform": False,
     "fit_ridge": 1e-3,
     "fitted_compositor_factor": 0.1,
+    "symmetric_auto": False,
 }
 
 
@@ -479,6 +499,9 @@ class TextureSetup:
     region: np.ndarray  # [H, W] bool
     photo: ReferencePhoto | None = None  # the reference photo (unaligned case)
     transform_fit: dict | None = None  # `start_from_fit`'s verdict (fit_transform, fresh runs)
+    mirror: dict | None = (
+        None  # whether view K's painting was mirrored, and why (`editable_masker`)
+    )
 
 
 def read_reference(path, background, mask: str = "auto") -> ReferencePhoto:
@@ -627,22 +650,54 @@ def require_features(run: RunDir, cfg) -> bool:
     return has_features
 
 
+def training_cameras(run: RunDir) -> list:
+    """The run's training cameras (every camera when none is marked for training)."""
+    frames = run.load_cameras().frames
+    return [c for c in frames if c.split == "train"] or list(frames)
+
+
+def required_mirror_plane(run: RunDir) -> np.ndarray:
+    """The proxy's mirror plane (n, D) for --symmetric; a SineError when it has none."""
+    from edit.shape_prior import proxy_mirror_plane
+
+    plane = proxy_mirror_plane(run)
+    if plane is None:
+        raise SineError("--symmetric: the proxy mesh has no clear mirror plane")
+    return plane
+
+
+def choose_mirror(run: RunDir, cfg, lifted: LiftedRegion, masks, renderer):
+    """(the plane view K's painting is mirrored across, or None; the verdict for metrics.json).
+    --symmetric: the proxy's plane. --symmetric-auto: the plane when the proxy has one and the
+    semantic masks of the training views (at the L_tex views' size, edges not refined) agree
+    with the mirrored painting on the surface view K did not see."""
+    from edit.shape_prior import proxy_mirror_plane
+
+    if cfg.symmetric:
+        return required_mirror_plane(run), {"mirrored": True, "by": "--symmetric"}
+    if not cfg.symmetric_auto:
+        return None, {"mirrored": False, "by": "--no-symmetric-auto"}
+    plane = proxy_mirror_plane(run)
+    if plane is None:
+        return None, {"mirrored": False, "by": "auto", "why": "no clear mirror plane"}
+    views = []
+    for camera in training_cameras(run):
+        feats, on_object, points = renderer.maps(scaled_camera(camera, cfg.tex_size))
+        editable = masks.mask(feats, points=points).cpu().numpy()
+        views.append((points[on_object], editable[on_object]))
+    agreement, pixels = lifted.mirror_agreement(plane, views)
+    mirrored = bool(agreement >= cfg.symmetric_agreement)  # nan: nothing to compare, False
+    verdict = {"mirrored": mirrored, "by": "auto", "agreement": agreement, "pixels": pixels}
+    return (plane if mirrored else None), verdict
+
+
 def editable_masker(run: RunDir, setup: TextureSetup, cfg, device, geometry=None):
     """view -> [P] bool pixels that may change (see the module doc); and the source's name.
     geometry: the scene whose feature maps the semantic masks take (default: the template; a
-    hybrid edit's `deformed_template`, see `edit.feature_maps.FeatureMapRenderer`)."""
+    hybrid edit's `deformed_template`, see `edit.feature_maps.FeatureMapRenderer`). Sets
+    `setup.mirror` (whether view K's painting is mirrored, and why)."""
     has_features = require_features(run, cfg)
-
-    def painting() -> LiftedRegion:  # view K's painting on the surface (and its mirror image)
-        lifted = LiftedRegion.from_view(setup.view, setup.region, cfg.lift_tol)
-        if not cfg.symmetric:
-            return lifted
-        from edit.shape_prior import proxy_mirror_plane
-
-        plane = proxy_mirror_plane(run)
-        if plane is None:
-            raise SineError("--symmetric: the proxy mesh has no clear mirror plane")
-        return lifted.mirrored(plane)
+    lifted = LiftedRegion.from_view(setup.view, setup.region, cfg.lift_tol)  # view K's painting
 
     if cfg.mask_source == "features" or (cfg.mask_source == "auto" and has_features):
         from edit.feature_maps import FeatureMapRenderer
@@ -657,21 +712,27 @@ def editable_masker(run: RunDir, setup: TextureSetup, cfg, device, geometry=None
         masks = SemanticMasks(feats, painted, mask_cfg, object_mask=on_object, points=points)
         # view K's surface, painted or not, and its mirror image: the template's (not a
         # hybrid's edited shape: there the semantic masks alone decide)
-        seen = painting() if geometry is None and (cfg.keep_seen or cfg.symmetric) else None
+        seen, plane = None, None
+        if geometry is None:
+            plane, setup.mirror = choose_mirror(run, cfg, lifted, masks, renderer)
+            seen = lifted if plane is None else lifted.mirrored(plane)
 
         def semantic(view: ViewSamples) -> torch.Tensor:
             feats, on_obj, points = renderer.maps(view.camera)
             image = view.template_rgb.reshape(*view.size, 3).clamp(0, 1).cpu().numpy()
             editable = masks.mask(feats, image, on_obj, points).cpu().numpy() & on_obj
             editable = torch.from_numpy(editable.reshape(-1)).to(device)
-            if seen is not None and cfg.symmetric:  # the painting's mirror image may change
+            if plane is not None:  # the painting's mirror image may change
                 editable |= seen.editable(view)
             if seen is not None and cfg.keep_seen:
                 editable &= ~seen.kept(view)
             return editable
 
         return semantic, "features"
-    return painting().editable, "lifted"
+    if cfg.symmetric:
+        setup.mirror = {"mirrored": True, "by": "--symmetric"}
+        return lifted.mirrored(required_mirror_plane(run)).editable, "lifted"
+    return lifted.editable, "lifted"
 
 
 # ---- training -----------------------------------------------------------------------------
@@ -797,6 +858,8 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
             metrics["gate_resolution"] = int(editing.gate.grid.shape[-1])
     if setup.transform_fit is not None:
         metrics["transform_fit"] = setup.transform_fit
+    if setup.mirror is not None:
+        metrics["mirror"] = setup.mirror
     if setup.photo is not None:
         metrics["reference_pixels"] = setup.photo.pixels
     panels = [template_rgb, rendered]
@@ -1008,9 +1071,7 @@ def texture_steps(
             view.template_sim = tex_loss.template_similarity(image)
         return view
 
-    train = [c for c in run.load_cameras().frames if c.split == "train"] or list(
-        run.load_cameras().frames
-    )
+    train = training_cameras(run)
     bank = ViewBank(train, cfg.jitter_copies, cfg.jitter_deg, cfg.tex_size, cfg.seed, make_view)
     if cfg.gate:  # F_dT is zero away from the edited part as the views' masks see it
         views = [setup.view] + [bank[j] for j in range(len(train))]

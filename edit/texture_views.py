@@ -303,6 +303,36 @@ class LiftedRegion:
         points = np.concatenate([self.points, reflect(self.points, plane)])
         return LiftedRegion(points, np.concatenate([self.inside, self.inside]), self.tol)
 
+    def mirror_agreement(
+        self, plane: np.ndarray, views: list[tuple[np.ndarray, np.ndarray]]
+    ) -> tuple[float, int]:
+        """How well the region mirrored in `plane` (n, D) agrees with other views' masks on the
+        surface the editing view did not see: (IoU, pixels compared) over `views`, each (surface
+        points [N, 3], editable [N] bool) of a view's object pixels. A pixel is compared where
+        its surface point lies within `tol` of a mirrored point and farther from every point the
+        editing view saw; the mirror says it may change where that mirrored point is inside.
+        (nan, 0) when no pixel is compared."""
+        from scipy.spatial import cKDTree
+
+        from edit.shape_prior import reflect
+
+        if not len(self.points):
+            return float("nan"), 0
+        seen, mirror = cKDTree(self.points), cKDTree(reflect(self.points, plane))
+        both = either = compared = 0
+        for points, editable in views:
+            if not len(points):
+                continue
+            near_seen = seen.query(points)[0] <= self.tol
+            dist, nearest = mirror.query(points)
+            use = (dist <= self.tol) & ~near_seen
+            said = self.inside[nearest[use]]  # [U] what the mirror says
+            masked = np.asarray(editable, bool)[use]
+            both += int((said & masked).sum())
+            either += int((said | masked).sum())
+            compared += int(use.sum())
+        return (both / either if either else float("nan")), compared
+
     def editable(self, view: ViewSamples) -> torch.Tensor:
         """[P] bool pixels of `view` that may change: their surface point is near one the
         editing view saw inside the region."""

@@ -601,18 +601,91 @@ def test_mirrored_painting_reaches_the_side_view_k_does_not_see(tiny_fitted_run)
     assert kept[far_obj & ~far_body].mean() > 0.8 and kept[far_body].mean() < 0.2
 
 
-def test_semantic_masks_keep_what_view_k_saw_unpainted(tiny_fitted_run, tmp_path_factory):
-    """The front half of the body painted in view K: the body's semantic mask reaches its
-    unpainted half too; with keep_seen that half keeps the template in view K and wherever
-    another view sees it, while the far side (never seen by view K) is as without it."""
+@pytest.fixture(scope="module")
+def features_run(tiny_fitted_run, tmp_path_factory):
+    """A copy of the tiny fitted run (no edits) with a tiny feature field."""
     from feature_run_helpers import TINY_FEATURES
 
     from edit.feature_field_fit import FeaturesConfig, distill_features
-    from edit.texture_edit import TextureSetup, editable_masker
 
-    root = tmp_path_factory.mktemp("keep_seen") / "run"
+    root = tmp_path_factory.mktemp("features") / "run"
     shutil.copytree(tiny_fitted_run, root, ignore=shutil.ignore_patterns("edits"))
     distill_features(root, FeaturesConfig(**TINY_FEATURES), progress=False)
+    return root
+
+
+def test_mirror_agreement_compares_the_masks_with_the_mirrored_painting_on_unseen_surface():
+    """View K saw the side x > 0 of a box, painted above z = 0; the mirror plane is x = 0. On
+    the far side (x < 0) a mask that follows the mirrored painting agrees fully, one that takes
+    the whole side half (IoU 1/2); points near what view K saw are not compared."""
+    grid = np.stack(np.meshgrid(np.linspace(-1, 1, 21), np.linspace(-1, 1, 21)), -1).reshape(-1, 2)
+    seen = np.column_stack([np.full(len(grid), 1.0), grid])  # [441, 3] x = 1
+    lifted = LiftedRegion(seen, seen[:, 2] > 0, tol=0.05)
+    plane = np.array([1.0, 0.0, 0.0, 0.0])
+    far = seen * [-1.0, 1.0, 1.0]  # the side x = -1
+    above = far[:, 2] > 0
+    assert lifted.mirror_agreement(plane, [(far, above)]) == (1.0, len(far))
+    iou, n = lifted.mirror_agreement(plane, [(far, np.ones(len(far), bool))])
+    assert iou == pytest.approx(above.sum() / len(far)) and n == len(far)
+    # view K's own side is not compared (it is what the painting says, not a guess)
+    assert lifted.mirror_agreement(plane, [(seen, ~above)])[1] == 0
+    assert np.isnan(lifted.mirror_agreement(plane, [(seen, above)])[0])
+    # a point of the far side farther than tol from every mirrored point is not compared either
+    off = far + [0.0, 0.0, 0.03]  # within tol
+    assert lifted.mirror_agreement(
+        plane, [(np.vstack([off, [[-1.0, 0.0, 5.0]]]), np.r_[above, True])]
+    )[1] == len(far)
+
+
+def test_symmetric_auto_mirrors_a_painting_the_far_side_masks_follow(features_run):
+    """The tiny car's body painted in view K: the semantic masks of the side view K does not see
+    agree with its mirror image far better than with the mirror image of a stroke on the body's
+    front fifth; at a threshold between the two (the tiny feature field's masks are coarse: the
+    body's agreement is ~0.5 here), --symmetric-auto mirrors the body, whose mirror image may then
+    change in the opposite view, and not the stroke; --no-symmetric-auto never mirrors."""
+    from edit.texture_edit import TextureSetup, editable_masker
+
+    run = RunDir(features_run)
+    template, background, fit_cfg = load_fitted(run.root)
+    sampler = make_sampler(fit_cfg, run)
+    frames = run.load_cameras().frames
+    camera = frames[VIEW]
+    body = read_label_map(features_run / "labels" / camera.name) == PART
+    front = np.arange(camera.width) < np.percentile(np.nonzero(body)[1], 20)
+    view = sample_view(camera, template, sampler, background)
+    opposite = (VIEW + len(frames) // 2) % len(frames)
+    far = sample_view(frames[opposite], template, sampler, background)
+    far_body = read_label_map(features_run / "labels" / frames[opposite].name) == PART
+    far_body = far_body.reshape(-1) & (far.opacity.numpy() > 0.5)
+
+    def masker(region, **options):
+        setup = TextureSetup(camera, view, None, np.zeros((8, 8, 3), np.float32), region)
+        cfg = TextureEditConfig(lift_tol=0.1, symmetric_agreement=0.4, **options)
+        masker, _ = editable_masker(run, setup, cfg, torch.device("cpu"))
+        return masker, setup.mirror
+
+    body_masker, body_verdict = masker(body)
+    _, stroke_verdict = masker(body & front[None, :])
+    assert body_verdict["by"] == "auto" and body_verdict["mirrored"], body_verdict
+    assert body_verdict["agreement"] > stroke_verdict["agreement"] + 0.15
+    assert not stroke_verdict["mirrored"], stroke_verdict
+    plain_masker, plain_verdict = masker(body, symmetric_auto=False)
+    assert plain_verdict == {"mirrored": False, "by": "--no-symmetric-auto"}
+    mirrored, plain = body_masker(far).numpy(), plain_masker(far).numpy()
+    # on the far side the mirror takes away what is not the body (the plain masks' excess)
+    precision = lambda m: (m & far_body).sum() / m.sum()  # noqa: E731
+    recall = lambda m: (m & far_body).sum() / far_body.sum()  # noqa: E731
+    assert precision(mirrored) > precision(plain) + 0.2, (precision(mirrored), precision(plain))
+    assert recall(mirrored) > 0.8, recall(mirrored)  # here: 0.97 / 0.62, recall 0.88
+
+
+def test_semantic_masks_keep_what_view_k_saw_unpainted(features_run):
+    """The front half of the body painted in view K: the body's semantic mask reaches its
+    unpainted half too; with keep_seen that half keeps the template in view K and wherever
+    another view sees it, while the far side (never seen by view K) is as without it."""
+    from edit.texture_edit import TextureSetup, editable_masker
+
+    root = features_run
     run = RunDir(root)
     template, background, fit_cfg = load_fitted(run.root)
     sampler = make_sampler(fit_cfg, run)
@@ -626,7 +699,7 @@ def test_semantic_masks_keep_what_view_k_saw_unpainted(tiny_fitted_run, tmp_path
     masks = {}
     for keep in (False, True):
         # features alone: the surface point would already hold the mask to the painted half
-        cfg = TextureEditConfig(keep_seen=keep, mask_spatial=0.0)
+        cfg = TextureEditConfig(keep_seen=keep, mask_spatial=0.0, symmetric_auto=False)
         masker, source = editable_masker(run, setup, cfg, torch.device("cpu"))
         assert source == "features"
         masks[keep] = [
