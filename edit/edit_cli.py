@@ -180,6 +180,14 @@ def run_texture(args: argparse.Namespace) -> int:
         f"{metrics['train_seconds']:.0f} s; {fit}{kept} -> {where} (look at edited_view.png "
         f"and previews/)"
     )
+    mirror = metrics.get("mirror") or {}
+    if mirror.get("pixels"):  # --symmetric-auto's verdict
+        done = "mirrored" if mirror["mirrored"] else "not mirrored"
+        print(
+            f"the painting {done} across the proxy's mirror plane: the far side's masks agree "
+            f"with its mirror image at IoU {mirror['agreement']:.2f} "
+            f"(--symmetric-agreement {cfg.symmetric_agreement})"
+        )
     return 0
 
 
