@@ -499,9 +499,7 @@ class TextureSetup:
     region: np.ndarray  # [H, W] bool
     photo: ReferencePhoto | None = None  # the reference photo (unaligned case)
     transform_fit: dict | None = None  # `start_from_fit`'s verdict (fit_transform, fresh runs)
-    mirror: dict | None = (
-        None  # whether view K's painting was mirrored, and why (`editable_masker`)
-    )
+    mirror: dict | None = None  # mirrored across the proxy's plane, and why (`choose_mirror`)
 
 
 def read_reference(path, background, mask: str = "auto") -> ReferencePhoto:
