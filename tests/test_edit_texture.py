@@ -637,6 +637,17 @@ def test_mirror_agreement_compares_the_masks_with_the_mirrored_painting_on_unsee
     )[1] == len(far)
 
 
+def view_k_of(root):
+    """(the run, camera -> its ViewSamples through the template, view K's camera, the body's
+    GT label [H, W] in view K) of a tiny run."""
+    run = RunDir(root)
+    template, background, fit_cfg = load_fitted(run.root)
+    sampler = make_sampler(fit_cfg, run)
+    camera = run.load_cameras().frames[VIEW]
+    body = read_label_map(root / "labels" / camera.name) == PART
+    return run, lambda cam: sample_view(cam, template, sampler, background), camera, body
+
+
 def test_symmetric_auto_mirrors_a_painting_the_far_side_masks_follow(features_run):
     """The tiny car's body painted in view K: the semantic masks of the side view K does not see
     agree with its mirror image far better than with the mirror image of a stroke on the body's
@@ -645,16 +656,12 @@ def test_symmetric_auto_mirrors_a_painting_the_far_side_masks_follow(features_ru
     change in the opposite view, and not the stroke; --no-symmetric-auto never mirrors."""
     from edit.texture_edit import TextureSetup, editable_masker
 
-    run = RunDir(features_run)
-    template, background, fit_cfg = load_fitted(run.root)
-    sampler = make_sampler(fit_cfg, run)
-    frames = run.load_cameras().frames
-    camera = frames[VIEW]
-    body = read_label_map(features_run / "labels" / camera.name) == PART
+    run, sample, camera, body = view_k_of(features_run)
     front = np.arange(camera.width) < np.percentile(np.nonzero(body)[1], 20)
-    view = sample_view(camera, template, sampler, background)
+    view = sample(camera)
+    frames = run.load_cameras().frames
     opposite = (VIEW + len(frames) // 2) % len(frames)
-    far = sample_view(frames[opposite], template, sampler, background)
+    far = sample(frames[opposite])
     far_body = read_label_map(features_run / "labels" / frames[opposite].name) == PART
     far_body = far_body.reshape(-1) & (far.opacity.numpy() > 0.5)
 
@@ -685,16 +692,11 @@ def test_semantic_masks_keep_what_view_k_saw_unpainted(features_run):
     another view sees it, while the far side (never seen by view K) is as without it."""
     from edit.texture_edit import TextureSetup, editable_masker
 
-    root = features_run
-    run = RunDir(root)
-    template, background, fit_cfg = load_fitted(run.root)
-    sampler = make_sampler(fit_cfg, run)
+    run, sample, camera, body = view_k_of(features_run)
     frames = run.load_cameras().frames
-    camera = frames[VIEW]
-    body = read_label_map(root / "labels" / camera.name) == PART
     cols = np.nonzero(body)[1]
     region = body & (np.arange(camera.width) < np.median(cols))[None, :]
-    view = sample_view(camera, template, sampler, background)
+    view = sample(camera)
     setup = TextureSetup(camera, view, None, np.zeros((8, 8, 3), np.float32), region)
     masks = {}
     for keep in (False, True):
@@ -702,10 +704,7 @@ def test_semantic_masks_keep_what_view_k_saw_unpainted(features_run):
         cfg = TextureEditConfig(keep_seen=keep, mask_spatial=0.0, symmetric_auto=False)
         masker, source = editable_masker(run, setup, cfg, torch.device("cpu"))
         assert source == "features"
-        masks[keep] = [
-            masker(sample_view(frames[k], template, sampler, background)).numpy()
-            for k in (VIEW, (VIEW + 4) % len(frames))
-        ]
+        masks[keep] = [masker(sample(frames[k])).numpy() for k in (VIEW, (VIEW + 4) % len(frames))]
     (k_off, far_off), (k_on, far_on) = masks[False], masks[True]
     unpainted = (body & ~region).reshape(-1)
     assert k_off[unpainted].mean() > 0.2  # the semantic mask reaches the unpainted half
