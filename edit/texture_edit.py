@@ -386,7 +386,8 @@ class TextureEditConfig(LoopOptions):
     )
     symmetric_auto: bool = option(
         True,
-        "without --symmetric, semantic masks: mirror view K's painting as --symmetric does when "
+        "texture mode with semantic masks, without --symmetric: mirror view K's painting as "
+        "--symmetric does when "
         "the proxy has a clear mirror plane and the semantic masks agree with the mirrored "
         "painting on the surface view K does not see (IoU >= --symmetric-agreement): the "
         "mirror then places the part's edge there, where the masks place it one DINO patch "
