@@ -615,9 +615,9 @@ def features_run(tiny_fitted_run, tmp_path_factory):
 
 
 def test_mirror_agreement_compares_the_masks_with_the_mirrored_painting_on_unseen_surface():
-    """View K saw the side x > 0 of a box, painted above z = 0; the mirror plane is x = 0. On
-    the far side (x < 0) a mask that follows the mirrored painting agrees fully, one that takes
-    the whole side half (IoU 1/2); points near what view K saw are not compared."""
+    """View K saw the side x = 1 of a box, painted above z = 0; the mirror plane is x = 0. On
+    the far side (x = -1) a mask that follows the mirrored painting agrees fully, one that takes
+    the whole side scores the painted share (IoU ~1/2); what view K saw is not compared."""
     grid = np.stack(np.meshgrid(np.linspace(-1, 1, 21), np.linspace(-1, 1, 21)), -1).reshape(-1, 2)
     seen = np.column_stack([np.full(len(grid), 1.0), grid])  # [441, 3] x = 1
     lifted = LiftedRegion(seen, seen[:, 2] > 0, tol=0.05)
