@@ -18,6 +18,7 @@ field for semantic masks).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -303,6 +304,19 @@ class LiftedRegion:
         points = np.concatenate([self.points, reflect(self.points, plane)])
         return LiftedRegion(points, np.concatenate([self.inside, self.inside]), self.tol)
 
+    @cached_property
+    def _tree(self):
+        """KD-tree of the lifted points (built once, on first use)."""
+        from scipy.spatial import cKDTree
+
+        return cKDTree(self.points)
+
+    def near(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For points [N, 3] (the region has points): whether the nearest lifted point lies
+        within `tol` [N] bool, and whether it is inside the region [N] bool."""
+        dist, nearest = self._tree.query(points)
+        return dist <= self.tol, self.inside[nearest]
+
     def mirror_agreement(
         self, plane: np.ndarray, views: list[tuple[np.ndarray, np.ndarray]]
     ) -> tuple[float, int]:
@@ -312,22 +326,19 @@ class LiftedRegion:
         its surface point lies within `tol` of a mirrored point and farther from every point the
         editing view saw; the mirror says it may change where that mirrored point is inside.
         (nan, 0) when no pixel is compared."""
-        from scipy.spatial import cKDTree
-
         from edit.shape_prior import reflect
 
         if not len(self.points):
             return float("nan"), 0
-        seen, mirror = cKDTree(self.points), cKDTree(reflect(self.points, plane))
+        mirror = LiftedRegion(reflect(self.points, plane), self.inside, self.tol)
         both = either = compared = 0
         for points, editable in views:
             if not len(points):
                 continue
-            near_seen = seen.query(points)[0] <= self.tol
-            dist, nearest = mirror.query(points)
-            use = (dist <= self.tol) & ~near_seen
-            said = self.inside[nearest[use]]  # [U] what the mirror says
-            masked = np.asarray(editable, bool)[use]
+            near_seen, _ = self.near(points)
+            near_mirror, said = mirror.near(points)  # said: what the mirror says
+            use = near_mirror & ~near_seen
+            said, masked = said[use], np.asarray(editable, bool)[use]
             both += int((said & masked).sum())
             either += int((said | masked).sum())
             compared += int(use.sum())
@@ -346,11 +357,9 @@ class LiftedRegion:
     def _seen(self, view: ViewSamples, inside: bool) -> torch.Tensor:
         """[P] bool pixels whose surface point's nearest lifted point lies within `tol` and is
         inside (or outside) the region."""
-        from scipy.spatial import cKDTree
-
         out = np.zeros(view.n_pixels, bool)
         points, pixels = surface_points(view)
         if len(pixels) and len(self.points):
-            dist, nearest = cKDTree(self.points).query(points)
-            out[pixels] = (dist <= self.tol) & (self.inside[nearest] == inside)
+            near, nearest_inside = self.near(points)
+            out[pixels] = near & (nearest_inside == inside)
         return torch.from_numpy(out).to(view.opacity.device)
