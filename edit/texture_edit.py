@@ -387,11 +387,11 @@ class TextureEditConfig(LoopOptions):
     symmetric_auto: bool = option(
         True,
         "texture mode with semantic masks, without --symmetric: mirror view K's painting as "
-        "--symmetric does when "
-        "the proxy has a clear mirror plane and the semantic masks agree with the mirrored "
-        "painting on the surface view K does not see (IoU >= --symmetric-agreement): the "
-        "mirror then places the part's edge there, where the masks place it one DINO patch "
-        "at a time (a painting the far side's masks do not follow is not mirrored)",
+        "--symmetric does when the proxy has a clear mirror plane and the semantic masks agree "
+        "with the mirrored painting on the surface view K does not see (IoU >= "
+        "--symmetric-agreement): the mirror then places the part's edge there, where the masks "
+        "place it one DINO patch at a time (a painting the far side's masks do not follow is "
+        "not mirrored)",
     )
     symmetric_agreement: float = option(
         0.7,
