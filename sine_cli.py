@@ -50,6 +50,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     from render.errors import SineError
+    from render.io import WRITE_ERRORS, write_error
 
     parser = build_parser(argv)
     args = parser.parse_args(argv)
@@ -57,6 +58,11 @@ def main(argv: list[str] | None = None) -> int:
         result = args.func(args)
     except SineError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a full disk, a read-only or protected folder: not a bug
+        if exc.errno not in WRITE_ERRORS:
+            raise
+        print(f"error: {write_error(exc.filename or 'a file', exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(

@@ -2,15 +2,14 @@
 
 - The target's silhouette comes from its alpha channel, else a given mask, else background
   keying (`recon.masks.segment_foreground`), in that order.
-- A target of another size than the run's working images is resized (with a warning) when the
-  aspect ratio matches, refused otherwise.
+- A target of another size than the run's working images is resized (with a one-line note) when
+  the aspect ratio matches, refused otherwise. A target whose silhouette is empty is refused.
 - The editable region is the user's painted region (`--region`), else where the target and the
   template's rendering of that view differ (silhouette or colour), dilated.
 """
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,8 +27,11 @@ class Target:
     silhouette_source: str  # alpha | mask | keying
 
 
-def _fit_size(image: np.ndarray, size: tuple[int, int], what: str, path) -> np.ndarray:
-    """Resizes image [h, w, ...] to size (W, H) when the aspect ratio matches; else an error."""
+def _fit_size(
+    image: np.ndarray, size: tuple[int, int], what: str, path, say: bool = True
+) -> np.ndarray:
+    """Resizes image [h, w, ...] to size (W, H) when the aspect ratio matches (saying so in one
+    line when `say`); else an error."""
     h, w = image.shape[:2]
     width, height = size
     if (w, h) == (width, height):
@@ -39,9 +41,25 @@ def _fit_size(image: np.ndarray, size: tuple[int, int], what: str, path) -> np.n
             f"{what} {path} is {w}x{h} but the run's images are {width}x{height} (another aspect "
             f"ratio); make it from `sine snapshot` of the same view"
         )
-    warnings.warn(f"{what} {path} is {w}x{h}; resized to the run's {width}x{height}", stacklevel=2)
+    if say:
+        print(f"note: {what} {path} is {w}x{h}; resized to the run's {width}x{height}")
     interp = cv2.INTER_AREA if w > width else cv2.INTER_LINEAR
     return cv2.resize(image, (width, height), interpolation=interp)
+
+
+def _require_silhouette(silhouette: np.ndarray, path, source: str) -> None:
+    """A SineError when the target's silhouette (from `source`) holds no object pixel."""
+    if silhouette.any():
+        return
+    why = {
+        "alpha": "it is fully transparent (alpha 0 everywhere)",
+        "mask": "its mask is black everywhere",
+        "keying": "no object stands out from the background",
+    }[source]
+    raise SineError(
+        f"the target {path} has an empty silhouette: {why}; give the edited view with the "
+        "object in it (erase only what should disappear)"
+    )
 
 
 def read_target(path, size: tuple[int, int], mask_path=None, background=None) -> Target:
@@ -52,10 +70,11 @@ def read_target(path, size: tuple[int, int], mask_path=None, background=None) ->
     rgb, alpha = read_image_rgba(path)
     rgb = _fit_size(rgb, size, "target", path)
     if alpha is not None and (alpha < 0.5).any():
-        sil = _fit_size(alpha, size, "target alpha", path) > 0.5
+        alpha = _fit_size(alpha, size, "target alpha", path, say=False)
+        sil = alpha > 0.5
         source = "alpha"
         if background is not None:  # what the user erased shows the run's background
-            a = _fit_size(alpha, size, "target alpha", path)[..., None]
+            a = alpha[..., None]
             rgb = rgb * a + np.asarray(background, np.float32) * (1 - a)
     elif mask_path is not None:
         if not Path(mask_path).is_file():
@@ -67,6 +86,7 @@ def read_target(path, size: tuple[int, int], mask_path=None, background=None) ->
 
         sil = segment_foreground(rgb)
         source = "keying"
+    _require_silhouette(sil, path, source)
     return Target(rgb.astype(np.float32), sil.astype(np.float32), source)
 
 

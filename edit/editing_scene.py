@@ -16,6 +16,7 @@ blends the images.
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,7 +42,29 @@ def load_edit_field(edit_dir: Path, device) -> dict:
         raise SineError(
             f"{path} not found; run `sine edit` first (or it was interrupted: re-run it)"
         )
-    return load_torch(path)
+    return load_torch(path, rebuild=edit_command(edit_dir))
+
+
+def edit_command(edit_dir: Path) -> str:
+    """The `sine edit ... --force` that makes the edit RUN/edits/NAME again, from its edit.json
+    (its options beyond the inputs, when not the defaults, must be given again)."""
+    edit_dir = Path(edit_dir)
+    words = ["sine edit", str(edit_dir.parent.parent), "--name", edit_dir.name]
+    try:
+        settings = json.loads((edit_dir / "edit.json").read_text())
+    except (OSError, ValueError):
+        settings = {}
+    if settings.get("view") is not None:
+        words += ["--view", str(settings["view"])]
+    words += ["--mode", str(settings.get("mode", "geometry"))]
+    flags = {"target": "--target", "mask": "--mask", "region": "--region"}
+    flags["reference"] = "--reference"
+    if settings.get("mode") == "hybrid" and not settings.get("one_target"):
+        flags.update(target="--target-geometry", texture_target="--target-texture")
+    if settings.get("texture_region") != settings.get("region"):
+        flags["texture_region"] = "--region-texture"
+    words += [f"{flag} {settings[key]}" for key, flag in flags.items() if settings.get(key)]
+    return f"`{' '.join(words)} --force` (and the options it was made with)"
 
 
 def edited_sampler(

@@ -32,16 +32,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def export_mesh(scene, out: Path, normalized: bool = False) -> dict:
-    """Writes `scene`'s coloured mesh to `out` (capture units unless `normalized`)."""
+    """Writes `scene`'s coloured mesh to `out` (capture units unless `normalized`), holding the
+    lock of `out`: a second export to the same file is refused while this one runs."""
+    from render.locks import lock_entry
     from render.mesh_export import denormalize_points, save_colored_mesh
 
-    vertices, triangles, colors = scene.colored_mesh()
-    units = "run"
-    if not normalized:
-        cams = scene.run.load_cameras()
-        vertices = denormalize_points(vertices, cams.scale, cams.center, cams.rotation)
-        units = "capture"
-    save_colored_mesh(out, vertices, triangles, colors)
+    with lock_entry(out, f"the mesh {out}"):
+        vertices, triangles, colors = scene.colored_mesh()
+        units = "run"
+        if not normalized:
+            cams = scene.run.load_cameras()
+            vertices = denormalize_points(vertices, cams.scale, cams.center, cams.rotation)
+            units = "capture"
+        save_colored_mesh(out, vertices, triangles, colors)
     return {"vertices": len(vertices), "triangles": len(triangles), "units": units}
 
 

@@ -31,7 +31,14 @@ import torch.nn.functional as F
 
 from recon.fit import load_fitted, load_views, make_sampler
 from recon.rundir import RunDir
-from recon.training import RUNTIME_KEYS, LoopOptions, Trainer, loop_options, progress_bar
+from recon.training import (
+    RUNTIME_KEYS,
+    LoopOptions,
+    Trainer,
+    discard_unstarted,
+    loop_options,
+    progress_bar,
+)
 from render.configs import from_json, option, to_dict, to_json, validate
 from render.device import pick_device, torch_threads
 from render.errors import SineError
@@ -46,6 +53,7 @@ from render.feature_field import (
 )
 from render.hashgrid import HashGridConfig
 from render.io import load_torch, save_torch, write_image, write_json
+from render.locks import lock_folder
 
 
 @dataclass
@@ -305,9 +313,9 @@ def load_feature_field(run_dir, device: torch.device | None = None) -> FeatureFi
     path = run.features / "field.pt"
     if not path.is_file():
         raise SineError(f"{path} not found; run `sine features {run.root}` first")
-    data = load_torch(path)
+    data = load_torch(path, rebuild=f"`sine features {run.root} --force`")
     if not isinstance(data.get("field_config"), str):
-        raise SineError(f"{path} is from an older version; run `sine features {run.root}` again")
+        raise SineError(f"{path} is from an older version; run `sine features {run.root} --force`")
     field = FeatureField(from_json(FeatureFieldConfig, data["field_config"]))
     field.load_state_dict(data["field"])
     return field.to(device or torch.device("cpu")).eval()
@@ -343,8 +351,11 @@ def distill_features(
     """Trains (or resumes) the feature field of `run_dir`; returns the metrics dict (with
     "skipped": True when it was already distilled with these options)."""
     cfg = validate(cfg or FeaturesConfig())
-    with torch_threads(cfg.threads):
-        return _distill(RunDir(run_dir), cfg, force, progress, stop_at)
+    run = RunDir(run_dir)
+    run.require("cameras")
+    with lock_folder(run.root, f"run {run.root}"), discard_unstarted(run.features):
+        with torch_threads(cfg.threads):
+            return _distill(run, cfg, force, progress, stop_at)
 
 
 def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop_at) -> dict:
@@ -362,6 +373,7 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
         advice="lower learning rates (e.g. half of --lr-grid and --lr-mlp)",
         defaults=to_dict(FeaturesConfig()),
         inputs=run.inputs("cameras.json", "images", "proxy_mesh.ply", "template/field.pt"),
+        outputs=("field.pt",),
     )
     done = trainer.finished()  # before the template, the views and DINO are loaded
     if done is not None:

@@ -38,6 +38,7 @@ proxy band for sampling.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import time
@@ -57,7 +58,13 @@ from edit.template_scene import load_template_scene
 from recon.fit import load_fitted, make_sampler
 from recon.rundir import RunDir
 from recon.training import RUNTIME_KEYS as LOOP_RUNTIME_KEYS
-from recon.training import LoopOptions, Trainer, exponential_decay, loop_options
+from recon.training import (
+    LoopOptions,
+    Trainer,
+    discard_unstarted,
+    exponential_decay,
+    loop_options,
+)
 from render.configs import option, to_dict, validate
 from render.device import pick_device, torch_threads
 from render.errors import SineError
@@ -69,6 +76,7 @@ from render.io import (
     write_json,
     write_mask,
 )
+from render.locks import lock_entry
 from render.metrics import psnr
 from render.raycast import MeshRaycaster
 from render.renderer import render_image, render_rays
@@ -282,8 +290,23 @@ def save_prior(out: Path, prior: PriorMesh, run: RunDir) -> None:
 EDIT_INPUTS = ("cameras.json", "proxy_mesh.ply", "template/field.pt")
 
 
+# the user's files' paths: recorded, but an edit is compared by their content (the same target
+# under another spelling of its path is the same edit; an image edited in place is a new one)
+PATH_KEYS = ("target", "mask", "region", "reference", "texture_target", "texture_region")
+EDIT_OUTPUTS = ("edit_field.pt",)  # a finished edit whose field does not load is learnt again
+
+
+@contextlib.contextmanager
+def editing(out: Path):
+    """For the block that learns the edit RUN/edits/NAME (`out`): holds the edit's lock (a second
+    process on the same edit is refused) and removes the .partial folder of an edit that fails
+    a check before its first checkpoint."""
+    with lock_entry(out, f"edit {out.name} of {out.parent.parent}"), discard_unstarted(out):
+        yield
+
+
 def input_digests(target, mask, region) -> dict:
-    """The user's files by path and content (an image edited in place is a new edit)."""
+    """The user's files by path and content (PATH_KEYS: only the content is compared)."""
     out = {}
     for key, path in (("target", target), ("mask", mask), ("region", region)):
         if path is not None and not Path(path).is_file():
@@ -528,7 +551,7 @@ def run_geometry_edit(
     if out.exists() and not out.is_dir():
         raise SineError(f"{out} exists and is not a folder")
     device = pick_device(cfg.device)
-    with torch_threads(cfg.threads):
+    with editing(out), torch_threads(cfg.threads):
         return _edit(run, out, view, target, mask, region, cfg, device, force, progress, stop_at)
 
 
@@ -544,13 +567,14 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
         out,
         f"edit {out.name}",
         settings,
-        RUNTIME_KEYS,
+        (*RUNTIME_KEYS, *PATH_KEYS),
         **loop_options(cfg),
         force=force,
         progress=progress,
         advice="a lower --lr-deform (or --lr-naive)",
         defaults={**to_dict(GeometryEditConfig()), **RECORDED_BEFORE},
         inputs=run.inputs(*EDIT_INPUTS),
+        outputs=EDIT_OUTPUTS,
     )
     done = trainer.finished()
     if done is not None:

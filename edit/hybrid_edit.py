@@ -55,7 +55,10 @@ import torch
 from edit import geometry_edit, texture_edit
 from edit.editing_scene import deformed_template, scene_from_folder
 from edit.geometry_edit import (
+    EDIT_OUTPUTS,
+    PATH_KEYS,
     GeometryEditConfig,
+    editing,
     geometry_training,
     input_digests,
     pick_view,
@@ -140,7 +143,7 @@ def run_hybrid_edit(
         raise SineError(f"{out} exists and is not a folder")
     device = pick_device(gcfg.device)
     regions = (region, region if region_texture is None else region_texture)
-    with torch_threads(gcfg.threads):
+    with editing(out), torch_threads(gcfg.threads):
         return _edit(
             run,
             out,
@@ -192,7 +195,7 @@ def _edit(
     geometry_target, texture_target, one = targets
     settings = _settings(view, targets, reference, mask, regions, gcfg, tcfg)
     runtime = tuple(f"geometry.{k}" for k in geometry_edit.RUNTIME_KEYS)
-    runtime += tuple(f"texture.{k}" for k in texture_edit.RUNTIME_KEYS)
+    runtime += tuple(f"texture.{k}" for k in texture_edit.RUNTIME_KEYS) + PATH_KEYS
     n_geometry, n_texture = gcfg.iterations, tcfg.iterations
     trainer = Trainer(
         out,
@@ -210,6 +213,7 @@ def _edit(
             **{f"texture.{k}": v for k, v in texture_edit.RECORDED_BEFORE.items()},
         },
         inputs=run.inputs(*texture_edit.TEXTURE_INPUTS),
+        outputs=EDIT_OUTPUTS,
     )
     done = trainer.finished()
     if done is not None:

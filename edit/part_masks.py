@@ -134,11 +134,12 @@ def semantic_masks(
     from edit.semantic_masks import SemanticMaskConfig
     from render.device import torch_threads
     from render.io import require_directory
+    from render.locks import lock_folder
 
     cfg = validate(cfg or MasksConfig())
     mask_cfg = validate(mask_cfg or SemanticMaskConfig())
     require_directory(out_dir, "--out")
-    with torch_threads(cfg.threads):
+    with lock_folder(out_dir, f"the masks folder {out_dir}"), torch_threads(cfg.threads):
         return _semantic_masks(run_dir, view, region, out_dir, cfg, mask_cfg, progress)
 
 

@@ -51,7 +51,11 @@ def _load(run: RunDir, edit: str | None, strength: float, dev) -> Scene:
     if edit is None:
         return load_template_scene(run, dev)
     if not run.edit(edit).is_dir():
-        have = sorted(p.name for p in (run.root / "edits").glob("*") if p.is_dir())
+        have = sorted(
+            p.name
+            for p in (run.root / "edits").glob("*")
+            if p.is_dir() and not p.name.startswith(".") and p.suffix not in (".partial", ".old")
+        )
         raise SineError(
             f"edit {edit} not found in {run.root / 'edits'} "
             f"(edits there: {', '.join(have) or 'none'}); create it with `sine edit`"

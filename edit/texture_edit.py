@@ -117,7 +117,7 @@ from edit.compositor import HALO, HEADS, Compositor, composite_hwc, fit_shared_t
 from edit.deferred import DeferredImage, deferred_backward, image_tiles
 from edit.edit_inputs import difference_region, read_region, read_target
 from edit.editing_field import EditingField
-from edit.geometry_edit import EDIT_INPUTS, input_digests
+from edit.geometry_edit import EDIT_INPUTS, EDIT_OUTPUTS, PATH_KEYS, editing, input_digests
 from edit.geometry_losses import photometric
 from edit.texture_views import (
     LiftedRegion,
@@ -761,7 +761,7 @@ def run_texture_edit(
     if out.exists() and not out.is_dir():
         raise SineError(f"{out} exists and is not a folder")
     device = pick_device(cfg.device)
-    with torch_threads(cfg.threads):
+    with editing(out), torch_threads(cfg.threads):
         return _edit(
             run, out, view, target, region, reference, cfg, device, force, progress, stop_at
         )
@@ -784,7 +784,7 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
         out,
         f"edit {out.name}",
         settings,
-        RUNTIME_KEYS,
+        (*RUNTIME_KEYS, *PATH_KEYS),
         **loop_options(cfg),
         force=force,
         progress=progress,
@@ -792,6 +792,7 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
         advice="lower learning rates (--lr-grid, --lr-compositor, --lr-naive)",
         defaults={**to_dict(TextureEditConfig()), **RECORDED_BEFORE},
         inputs=run.inputs(*TEXTURE_INPUTS),
+        outputs=EDIT_OUTPUTS,
     )
     done = trainer.finished()
     if done is not None:

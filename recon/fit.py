@@ -33,7 +33,14 @@ from recon.proxy_mesh import write_mesh
 from recon.proxy_refine import REFINE_MIN_COMPONENT
 from recon.rundir import RunDir
 from recon.selfcheck import require_trusted_poses
-from recon.training import RUNTIME_KEYS, LoopOptions, Trainer, exponential_decay, loop_options
+from recon.training import (
+    RUNTIME_KEYS,
+    LoopOptions,
+    Trainer,
+    discard_unstarted,
+    exponential_decay,
+    loop_options,
+)
 from render import volume
 from render.configs import from_json, option, to_dict, to_json, validate
 from render.device import pick_device, torch_threads
@@ -48,6 +55,7 @@ from render.io import (
     write_image,
     write_json,
 )
+from render.locks import lock_folder
 from render.metrics import masked_psnr, masked_ssim, psnr, psnr_of_mse
 from render.renderer import render_image, render_rays
 from render.sampler import BandSampler, ProxyRaycaster, RayHits, UniformSampler, sampler_window
@@ -635,9 +643,9 @@ def load_fitted(run_dir, device: torch.device | None = None):
     path = run.template / "field.pt"
     if not path.is_file():
         raise SineError(f"{path} not found; run `sine fit {run.root}` first")
-    data = load_torch(path)
+    data = load_torch(path, rebuild=f"`sine fit {run.root} --force`")
     if not isinstance(data.get("field_config"), str):
-        raise SineError(f"{path} is from an older version; run `sine fit {run.root}` again")
+        raise SineError(f"{path} is from an older version; run `sine fit {run.root} --force`")
     field = TemplateField(from_json(TemplateFieldConfig, data["field_config"]))
     field.load_state_dict(data["field"])
     bg = Background(data["background_color"], learnable=False)
@@ -926,8 +934,9 @@ def fit_template(
     if not run.proxy_mesh.is_file() and cfg.sampler == "band":
         raise SineError(f"{run.root} has no proxy_mesh.ply yet; run `sine recon {run.root}` first")
     device = pick_device(cfg.device)
-    with torch_threads(cfg.threads):
-        return _fit(run, cfg, device, force, progress, stop_at)
+    with lock_folder(run.root, f"run {run.root}"), discard_unstarted(run.template):
+        with torch_threads(cfg.threads):
+            return _fit(run, cfg, device, force, progress, stop_at)
 
 
 # what a template is made from: a run whose recon changed them is fitted again
@@ -947,6 +956,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         advice="lower learning rates (e.g. half of --lr-grid and --lr-mlp)",
         defaults={**to_dict(FitConfig()), **RECORDED_BEFORE},
         inputs=run.inputs(*FIT_INPUTS),
+        outputs=("field.pt",),
     )
     done = trainer.finished()  # before any data is loaded: a finished fit costs nothing
     if done is not None:

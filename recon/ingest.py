@@ -66,6 +66,7 @@ from render.io import (
     write_image,
     write_mask,
 )
+from render.locks import lock_folder
 
 FORMATS = ("auto", "images", "video", "transforms", "colmap", "middlebury", "neus", "projections")
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".gif")
@@ -169,6 +170,11 @@ def ingest_capture(capture: Path, run: RunDir, cfg: IngestConfig | None = None) 
             "transforms.json, a COLMAP model folder, a Middlebury or NeuS folder"
         )
     capture = capture.resolve()
+    with lock_folder(run.root, f"run {run.root}"):
+        return _ingest(capture, run, cfg, t0)
+
+
+def _ingest(capture: Path, run: RunDir, cfg: IngestConfig, t0: float) -> dict:
     source = str(capture)
     config = _config_key(cfg)
     previous = _previous(run, source, config)

@@ -23,6 +23,7 @@ from render.cameras import Camera, CameraSet
 from render.configs import option, to_dict, validate
 from render.errors import SineError
 from render.io import atomic_path, read_depth, read_json, read_mask, write_depth, write_json
+from render.locks import lock_folder
 
 STAGES = ("ingest", "masks", "poses", "normalize", "depth", "proxy_mesh", "report")
 # The prefix of a ReconConfig option's help text names the stage it belongs to.
@@ -809,12 +810,19 @@ class Pipeline:
 def run_recon(capture: Path | None, run: RunDir, cfg: ReconConfig, ingest_cfg=None) -> dict:
     """Runs every stage (skipping finished ones unless ingest_cfg.force or their options
     changed); returns the report."""
-    from recon.ingest import IngestConfig, ingest_capture
+    from recon.ingest import IngestConfig
     from render.io import require_directory
 
     validate(cfg)
     ingest_cfg = validate(ingest_cfg or IngestConfig())
     require_directory(run.root, "--out")
+    with lock_folder(run.root, f"run {run.root}"):
+        return _recon(capture, run, cfg, ingest_cfg)
+
+
+def _recon(capture: Path | None, run: RunDir, cfg: ReconConfig, ingest_cfg) -> dict:
+    from recon.ingest import ingest_capture
+
     pipe = Pipeline(run, cfg, force=ingest_cfg.force, ignore_poses=ingest_cfg.ignore_poses)
     if capture is not None:
         t0 = time.perf_counter()

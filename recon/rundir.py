@@ -7,6 +7,7 @@ stage's resolved config to `config.yaml`.
 from __future__ import annotations
 
 import datetime
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -65,6 +66,17 @@ class RunDir:
         return self.root / "features"
 
     def edit(self, name: str) -> Path:
+        """RUN/edits/NAME; a SineError for a name that is not a plain folder name (or that the
+        run's own bookkeeping uses: hidden, *.partial, *.old)."""
+        if (
+            not re.fullmatch(r"[\w.+-]+", name)
+            or name.startswith(".")
+            or Path(name).suffix in (".partial", ".old")
+        ):
+            raise SineError(
+                f"edit name {name!r}: use letters, digits, '_', '-', '+' and '.' (not first, and "
+                "not ending in .partial or .old)"
+            )
         return self.root / "edits" / name
 
     def image_path(self, name: str) -> Path:

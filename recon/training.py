@@ -55,11 +55,19 @@ recorded options differ from the given ones (runtime keys such as device and thr
 trained again, and the changed options are named; an interrupted run with other options is
 discarded the same way. A stage also names what it is made from (`inputs`: files or folders of
 the run, e.g. the template's field.pt for an edit): their digests are recorded with the options,
-and a run whose inputs changed since (or were not recorded) is trained again as well.
+and a run whose inputs changed since (or were not recorded) is trained again as well. And it
+names the torch files it leaves (`outputs`, e.g. field.pt): a finished run one of whose outputs
+does not load (truncated, corrupt) is not done, and is trained again.
+
+One process at a time. The stage holds the lock of what it writes (`render.locks`) around the
+whole run, and `discard_unstarted` removes the `.partial` folder of a run that failed a check
+before its first checkpoint. Holding the lock, a `.partial` folder found at the start is an
+interrupted run's: it is resumed ("resuming from step N of M") or removed with a line saying so.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import pickle
@@ -77,7 +85,15 @@ from tqdm import tqdm
 
 from render.configs import option
 from render.errors import SineError
-from render.io import artefact_digest, load_torch, read_json, save_torch, write_json
+from render.io import (
+    TORCH_READ_ERRORS,
+    artefact_digest,
+    load_torch,
+    read_json,
+    save_torch,
+    torch_read_problem,
+    write_json,
+)
 
 StepFn = Callable[[int], dict[str, torch.Tensor]]
 # The loop's own options, by the names a stage config gives them (see `loop_options`).
@@ -197,6 +213,34 @@ def read_checkpoint_header(path: Path) -> dict | None:
 _FORMAT = "sine-checkpoint-1"
 
 
+def partial_dir(directory: str | os.PathLike) -> Path:
+    """Where a training stage's run in progress lives: DIRECTORY.partial."""
+    directory = Path(directory)
+    return directory.with_name(directory.name + ".partial")
+
+
+def folder_megabytes(folder: Path) -> float:
+    """Size of a folder's files in MB (0 when it does not exist)."""
+    if not folder.is_dir():
+        return 0.0
+    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()) / 1e6
+
+
+@contextlib.contextmanager
+def discard_unstarted(directory: str | os.PathLike):
+    """For the block that runs a training stage into `directory`: when it ends on a user error
+    (a SineError: a failed check, a bad input) before the stage's first checkpoint, the
+    DIRECTORY.partial folder it made is removed (nothing in it could be resumed). Interrupted
+    runs and runs with a checkpoint keep their folder."""
+    try:
+        yield
+    except SineError:
+        work = partial_dir(directory)
+        if work.is_dir() and not (work / "checkpoint.pt").is_file():
+            shutil.rmtree(work, ignore_errors=True)
+        raise
+
+
 # ---- the loop ---------------------------------------------------------------------------------
 class Trainer:
     """One resumable training run of a stage; see the module docstring.
@@ -206,7 +250,9 @@ class Trainer:
     that do not change the result (device, threads, ...). `advice`: what to change when the loss
     diverges (resuming as is would repeat the same steps). `defaults`: the options' default
     values: an option added after a run was recorded counts, for that run, as its default (a
-    new option left at its default does not retrain finished runs).
+    new option left at its default does not retrain finished runs). `inputs`: files or folders
+    the stage is made from; `outputs`: torch files of `directory` that must load for the run to
+    count as done.
     """
 
     def __init__(
@@ -227,9 +273,10 @@ class Trainer:
         advice: str = "lower learning rates",
         defaults: dict | None = None,
         inputs: dict[str, str | os.PathLike] | None = None,
+        outputs: tuple[str, ...] = (),
     ):
         self.directory = Path(directory)
-        self.work_dir = self.directory.with_name(self.directory.name + ".partial")
+        self.work_dir = partial_dir(self.directory)
         self.name, self.runtime_keys = name, tuple(runtime_keys)
         # what the stage is made from (name -> file / folder): their digests are recorded with
         # the options, so a finished run whose inputs changed since is trained again
@@ -240,6 +287,7 @@ class Trainer:
         self.force, self.progress, self.manual_backward = force, progress, manual_backward
         self.defaults = dict(defaults or {})
         self.advice = advice
+        self.outputs = tuple(outputs)
         self.step, self.seconds, self.log = 0, 0.0, []
         self.optimizer = self.scheduler = self.generator = None
         self.state: dict[str, Any] = {}
@@ -268,12 +316,33 @@ class Trainer:
             return None
         changes = self._changes(done["config"])
         if not changes and done["step"] >= self.iterations:
-            return {**read_json(metrics), "skipped": True}
+            broken = self._unreadable_output()
+            if broken is None:
+                return {**read_json(metrics), "skipped": True}
+            self._say(f"the finished run in {self.directory} is damaged ({broken}): training again")
+            self._prepare_work_dir()
+            return None
         self._say(
             f"the finished run in {self.directory} is out of date "
             f"({'; '.join(changes)}): training again (the old results stay until it finishes)"
         )
         self._prepare_work_dir()
+        return None
+
+    def _unreadable_output(self) -> str | None:
+        """What is wrong with the finished run's files (`outputs` that do not load, metrics.json
+        that is not JSON), None when they are sound."""
+        try:
+            read_json(self.directory / "metrics.json")
+        except SineError:
+            return "metrics.json is not valid JSON"
+        for name in self.outputs:
+            try:
+                torch.load(self.directory / name, map_location="cpu", weights_only=True, mmap=True)
+            except FileNotFoundError:
+                return f"{name} is missing"
+            except TORCH_READ_ERRORS as exc:
+                return f"{name} does not load: {torch_read_problem(exc)}"
         return None
 
     def _changes(self, recorded: dict) -> list[str]:
@@ -298,15 +367,26 @@ class Trainer:
         """Keeps work_dir when its checkpoint resumes with these options, else empties it."""
         header = None if self.force else read_checkpoint_header(self.checkpoint_path)
         self._resumable = False
+        size = f"{folder_megabytes(self.work_dir):.0f} MB"
         if header is not None:
             changes = self._changes(header["config"])
             if not changes:
                 self._resumable = True
                 return
-            self._say(f"discarding the interrupted run in {self.work_dir} ({'; '.join(changes)})")
-        elif self.checkpoint_path.is_file() and not self.force:
             self._say(
-                f"{self.checkpoint_path} is unreadable or from an older version: starting over"
+                f"discarding the interrupted run in {self.work_dir}, {size} ({'; '.join(changes)})"
+            )
+        elif self.force and self.work_dir.exists():
+            self._say(f"--force: removing the interrupted run in {self.work_dir} ({size})")
+        elif self.checkpoint_path.is_file():
+            self._say(
+                f"{self.checkpoint_path} is unreadable or from an older version: starting over "
+                f"(removing {self.work_dir}, {size})"
+            )
+        elif self.work_dir.exists() and any(self.work_dir.iterdir()):
+            self._say(
+                f"removing {self.work_dir}, left by a run stopped before its first "
+                f"checkpoint ({size})"
             )
         shutil.rmtree(self.work_dir, ignore_errors=True)
 
@@ -318,7 +398,8 @@ class Trainer:
             self._prepare_work_dir()
         if not self._resumable:
             return None
-        packed = load_torch(self.checkpoint_path)["state"].get(name) or {}
+        checkpoint = load_torch(self.checkpoint_path, rebuild="the same command with --force")
+        packed = checkpoint["state"].get(name) or {}
         return json.loads(packed["json"]) if "json" in packed else None
 
     # ---- setup -------------------------------------------------------------------------------
@@ -354,9 +435,10 @@ class Trainer:
             self._prepare_work_dir()
         if self._resumable:
             self._load(self.checkpoint_path)
+            self._say(f"resuming from step {self.step} of {self.iterations}")
 
     def _load(self, path: Path) -> None:
-        data = load_torch(path)
+        data = load_torch(path, rebuild="the same command with --force")
         for name, value in self.state.items():
             if name not in data["state"]:
                 raise SineError(f"{path} has no {name!r}; delete it or re-run with --force")

@@ -27,6 +27,7 @@ from render.camera_paths import write_camera_path
 from render.cameras import Camera
 from render.feature_field import pca_rgb
 from render.io import write_image
+from render.locks import lock_folder
 from render.video import VideoWriter
 
 
@@ -85,46 +86,47 @@ def render_frames(
     `feature_map(camera) -> (PCA coefficients [H, W, D >= 3], object mask [H, W])` adds the
     feature images."""
     out_dir = Path(out_dir)
-    write_camera_path(out_dir / "camera_path.json", cameras, fps)
-    names = [Path(c.name).stem if c.name else f"{i:04d}" for i, c in enumerate(cameras)]
-    if len(set(names)) != len(names):
-        names = [f"{i:04d}" for i in range(len(cameras))]
-    coverage, feature_range = [], None
-    with contextlib.ExitStack() as stack:
-        writer = stack.enter_context(VideoWriter(video, fps)) if video is not None else None
-        pairs = list(zip(cameras, names, strict=True))
-        for cam, name in tqdm(pairs, desc="render", unit="frame", disable=not progress):
-            out = scene.render_view(cam, chunk)
-            rgb = np.clip(out["rgb"], 0.0, 1.0)
-            coverage.append(float((out["opacity"] > 0.5).mean()))
-            write_image(out_dir / "rgb" / f"{name}.png", rgb)
-            if depth:
-                dist = float(np.linalg.norm(cam.center))
-                image = depth_colormap(out["z"], out["opacity"], max(dist - 1, 0), dist + 1)
-                write_image(out_dir / "depth" / f"{name}.png", image)
-            if opacity:
-                image = np.repeat(np.clip(out["opacity"], 0, 1)[..., None], 3, axis=2)
-                write_image(out_dir / "opacity" / f"{name}.png", image)
-            if feature_map is not None:
-                coeffs, on_object = feature_map(cam)
-                if feature_range is None:  # one colour mapping for the whole path
-                    sel = coeffs[..., :3][on_object] if on_object.any() else coeffs[..., :3]
-                    sel = sel.reshape(-1, 3)
-                    feature_range = np.percentile(sel, 1, 0), np.percentile(sel, 99, 0)
-                image = pca_rgb(coeffs, on_object, *feature_range, background=0.0)
-                write_image(out_dir / "features" / f"{name}.png", image)
-            frame = rgb
-            if reference is not None:
-                ref = np.clip(reference.render_view(cam, chunk)["rgb"], 0.0, 1.0)
-                frame = side_by_side(ref, rgb, (reference.name, scene.name))
-                write_image(out_dir / "compare" / f"{name}.png", frame)
-            if writer is not None:
-                writer.write(frame)
-    return {
-        "frames": len(cameras),
-        "width": cameras[0].width,
-        "height": cameras[0].height,
-        "out": str(out_dir),
-        "video": None if video is None else str(video),
-        "mean_object_coverage": float(np.mean(coverage)),
-    }
+    with lock_folder(out_dir, f"the render folder {out_dir}"):
+        write_camera_path(out_dir / "camera_path.json", cameras, fps)
+        names = [Path(c.name).stem if c.name else f"{i:04d}" for i, c in enumerate(cameras)]
+        if len(set(names)) != len(names):
+            names = [f"{i:04d}" for i in range(len(cameras))]
+        coverage, feature_range = [], None
+        with contextlib.ExitStack() as stack:
+            writer = stack.enter_context(VideoWriter(video, fps)) if video is not None else None
+            pairs = list(zip(cameras, names, strict=True))
+            for cam, name in tqdm(pairs, desc="render", unit="frame", disable=not progress):
+                out = scene.render_view(cam, chunk)
+                rgb = np.clip(out["rgb"], 0.0, 1.0)
+                coverage.append(float((out["opacity"] > 0.5).mean()))
+                write_image(out_dir / "rgb" / f"{name}.png", rgb)
+                if depth:
+                    dist = float(np.linalg.norm(cam.center))
+                    image = depth_colormap(out["z"], out["opacity"], max(dist - 1, 0), dist + 1)
+                    write_image(out_dir / "depth" / f"{name}.png", image)
+                if opacity:
+                    image = np.repeat(np.clip(out["opacity"], 0, 1)[..., None], 3, axis=2)
+                    write_image(out_dir / "opacity" / f"{name}.png", image)
+                if feature_map is not None:
+                    coeffs, on_object = feature_map(cam)
+                    if feature_range is None:  # one colour mapping for the whole path
+                        sel = coeffs[..., :3][on_object] if on_object.any() else coeffs[..., :3]
+                        sel = sel.reshape(-1, 3)
+                        feature_range = np.percentile(sel, 1, 0), np.percentile(sel, 99, 0)
+                    image = pca_rgb(coeffs, on_object, *feature_range, background=0.0)
+                    write_image(out_dir / "features" / f"{name}.png", image)
+                frame = rgb
+                if reference is not None:
+                    ref = np.clip(reference.render_view(cam, chunk)["rgb"], 0.0, 1.0)
+                    frame = side_by_side(ref, rgb, (reference.name, scene.name))
+                    write_image(out_dir / "compare" / f"{name}.png", frame)
+                if writer is not None:
+                    writer.write(frame)
+        return {
+            "frames": len(cameras),
+            "width": cameras[0].width,
+            "height": cameras[0].height,
+            "out": str(out_dir),
+            "video": None if video is None else str(video),
+            "mean_object_coverage": float(np.mean(coverage)),
+        }

@@ -10,8 +10,10 @@ someone shared never executes pickled code.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
+import pickle
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -25,16 +27,58 @@ from render.errors import SineError
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
 
 
+def _umask() -> int:
+    """The process's umask (read without changing it where /proc says it)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except OSError:
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def write_error(path: str | os.PathLike, exc: OSError) -> SineError:
+    """A disk full, a read-only or protected folder while writing `path`, as one readable line
+    (finished results are never replaced by a half-written file)."""
+    why = {
+        errno.ENOSPC: "no space left on the device: free some space",
+        errno.EDQUOT: "the disk quota is exhausted: free some space",
+        errno.EROFS: "the file system is read-only: write to another folder",
+        errno.EACCES: "permission denied: write to a folder you may write to",
+        errno.EPERM: "permission denied: write to a folder you may write to",
+    }.get(exc.errno, exc.strerror or type(exc).__name__)
+    return SineError(f"cannot write {path} ({why}); finished results are kept, re-run to go on")
+
+
+WRITE_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM)
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike):
-    """Yields a temporary path beside `path`; renames it onto `path` if the block succeeds."""
+    """Yields a temporary path beside `path`; renames it onto `path` if the block succeeds.
+
+    The file gets the mode a plain `open()` would give it (0644 under the usual umask 0022).
+    A full disk or a folder that cannot be written is a SineError naming `path`."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    except OSError as exc:
+        if exc.errno in WRITE_ERRORS:
+            raise write_error(path, exc) from None
+        raise
+    os.fchmod(fd, 0o666 & ~_umask())
     os.close(fd)
     try:
         yield Path(tmp)
         os.replace(tmp, path)
+    except OSError as exc:
+        if exc.errno in WRITE_ERRORS:
+            raise write_error(path, exc) from None
+        raise
     finally:
         if os.path.exists(tmp):
             os.remove(tmp)
@@ -184,21 +228,37 @@ def save_torch(path: str | os.PathLike, obj: Any) -> None:
         torch.save(obj, tmp)
 
 
-def load_torch(path: str | os.PathLike) -> Any:
-    """torch.load(path, weights_only=True) onto the CPU; an unreadable file (corrupt, truncated,
-    or holding pickled Python objects) is a SineError that names it."""
-    import pickle
+TORCH_READ_ERRORS = (RuntimeError, OSError, EOFError, ValueError, pickle.UnpicklingError)
 
+
+def torch_read_problem(exc: BaseException) -> str:
+    """What is wrong with a torch file that did not load, in a few words (torch's own message
+    is long and advises an unsafe way to load the file)."""
+    text = str(exc)
+    if "Weights only load failed" in text or isinstance(exc, pickle.UnpicklingError):
+        return "it holds Python objects, which are never loaded from a file"
+    if isinstance(exc, EOFError) or "central directory" in text or "truncated" in text.lower():
+        return "it is truncated or corrupt"
+    if isinstance(exc, OSError):
+        return exc.strerror or "it cannot be read"
+    return "it is corrupt or not a file of this program"
+
+
+def load_torch(path: str | os.PathLike, rebuild: str | None = None) -> Any:
+    """torch.load(path, weights_only=True) onto the CPU. A missing or unreadable file (corrupt,
+    truncated, or holding pickled Python objects) is a SineError that names it and `rebuild`,
+    the command that makes it again."""
     import torch
 
     path = Path(path)
+    rebuild = rebuild or "the command that wrote it, with --force"
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
-        raise SineError(f"{path} does not exist") from None
-    except (RuntimeError, OSError, EOFError, pickle.UnpicklingError) as exc:
-        why = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
-        raise SineError(f"cannot read {path} ({why}); delete it or re-run with --force") from None
+        raise SineError(f"{path} does not exist; make it with {rebuild}") from None
+    except TORCH_READ_ERRORS as exc:
+        why = torch_read_problem(exc)
+        raise SineError(f"cannot read {path}: {why}; make it again with {rebuild}") from None
 
 
 def write_mask(path: str | os.PathLike, mask: np.ndarray) -> None:

@@ -36,7 +36,7 @@ from recon.rundir import RunDir
 from render.cameras import Camera, look_at
 from render.errors import SineError
 from render.hashgrid import HashGridConfig
-from render.io import load_torch
+from render.io import load_torch, write_mask
 from render.raycast import MeshRaycaster
 from render.renderer import render_rays
 from render.sampler import UniformSampler
@@ -327,7 +327,7 @@ def test_difference_region_says_nothing_to_edit_and_finds_a_changed_square():
     assert 24 <= cols.min() <= 26 and 43 <= cols.max() <= 45
 
 
-def test_read_target_alpha_aspect_and_resize(tmp_path):
+def test_read_target_alpha_aspect_and_resize(tmp_path, capsys):
     rgb, alpha = _square_scene()
     path = tmp_path / "t.png"
     write_rgba(path, rgb, alpha)
@@ -338,12 +338,27 @@ def test_read_target_alpha_aspect_and_resize(tmp_path):
     np.testing.assert_allclose(target.rgb[alpha == 1], [[0.8, 0.3, 0.2]] * 1024, atol=1 / 255)
     with pytest.raises(SineError, match="another aspect"):
         read_target(path, (64, 48))
-    with pytest.warns(UserWarning, match="resized"):
-        big = read_target(path, (128, 128))
+    capsys.readouterr()
+    big = read_target(path, (128, 128))
+    notes = capsys.readouterr().out.splitlines()  # one plain line for the image and its alpha
+    assert notes == [f"note: target {path} is 64x64; resized to the run's 128x128"]
     assert big.rgb.shape == (128, 128, 3) and big.silhouette.shape == (128, 128)
     assert big.silhouette[40:90, 40:90].all() and not big.silhouette[:25].any()
     with pytest.raises(SineError, match="does not exist"):
         read_target(tmp_path / "missing.png", (64, 64))
+
+
+def test_read_target_refuses_an_empty_silhouette(tmp_path):
+    rgb, alpha = _square_scene()
+    path = tmp_path / "clear.png"
+    write_rgba(path, rgb, np.zeros_like(alpha))  # fully transparent
+    with pytest.raises(SineError, match="empty silhouette: it is fully transparent"):
+        read_target(path, (64, 64))
+    black = tmp_path / "black.png"
+    write_mask(black, np.zeros_like(alpha))
+    write_rgba(path, rgb, np.ones_like(alpha))  # opaque: the silhouette comes from --mask
+    with pytest.raises(SineError, match="empty silhouette: its mask is black everywhere"):
+        read_target(path, (64, 64), mask_path=black)
 
 
 # ---- a tiny edit end to end ---------------------------------------------------------------
