@@ -43,14 +43,17 @@ def _umask() -> int:
 def write_error(path: str | os.PathLike, exc: OSError) -> SineError:
     """A disk full, a read-only or protected folder while writing `path`, as one readable line
     (finished results are never replaced by a half-written file)."""
+    denied = "permission denied: make the folder writable, or write somewhere else"
     why = {
-        errno.ENOSPC: "no space left on the device: free some space",
-        errno.EDQUOT: "the disk quota is exhausted: free some space",
-        errno.EROFS: "the file system is read-only: write to another folder",
-        errno.EACCES: "permission denied: write to a folder you may write to",
-        errno.EPERM: "permission denied: write to a folder you may write to",
+        errno.ENOSPC: "no space left on the device: free some space, then run this again; "
+        "finished results are kept",
+        errno.EDQUOT: "the disk quota is exhausted: free some space, then run this again; "
+        "finished results are kept",
+        errno.EROFS: "the file system is read-only: write somewhere else",
+        errno.EACCES: denied,
+        errno.EPERM: denied,
     }.get(exc.errno, exc.strerror or type(exc).__name__)
-    return SineError(f"cannot write {path} ({why}); finished results are kept, re-run to go on")
+    return SineError(f"cannot write {path} ({why})")
 
 
 WRITE_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM)

@@ -1,0 +1,317 @@
+"""Nothing lost: locks on what a stage writes, readable files, damaged results redone, read-only
+runs, inputs compared by content, clear refusals that leave nothing behind, full disks."""
+
+from __future__ import annotations
+
+import errno
+import os
+import shutil
+import signal
+import stat
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from feature_run_helpers import TINY_FIT, TINY_GEOMETRY_EDIT
+
+import sine_cli
+from edit.geometry_edit import GeometryEditConfig, run_geometry_edit
+from edit.targets import write_rgba
+from recon.fit import FitConfig, fit_template, load_fitted
+from recon.training import partial_dir
+from render import io, locks
+from render.errors import SineError
+from render.io import read_image, write_json
+
+ROOT = Path(__file__).resolve().parents[1]
+VIEW = 2
+
+
+def flags(options: dict) -> list[str]:
+    """A config dict as `sine` command-line flags."""
+    out = []
+    for key, value in options.items():
+        flag = "--" + key.replace("_", "-")
+        if isinstance(value, bool):
+            out.append(flag if value else "--no-" + key.replace("_", "-"))
+        else:
+            out += [flag, str(value)]
+    return out
+
+
+def sine(*args, user: int | None = None, **kwargs) -> subprocess.CompletedProcess:
+    """`sine ARGS` in a subprocess (as `user`, a uid, when given)."""
+    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "PYTHONPATH": str(ROOT)}
+    cmd = [sys.executable, "-m", "sine_cli", *map(str, args)]
+    if user is not None:
+        cmd = ["setpriv", f"--reuid={user}", f"--regid={user}", "--clear-groups", *cmd]
+    return subprocess.run(cmd, capture_output=True, text=True, cwd=kwargs.get("cwd", ROOT), env=env)
+
+
+def one_line_error(proc: subprocess.CompletedProcess) -> str:
+    """The single `error:` line of a refused command (asserting it is one, without traceback)."""
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), proc.stderr
+    return lines[0]
+
+
+@pytest.fixture
+def run(tiny_fitted_run, tmp_path):
+    """A copy of the tiny fitted run with a geometric target for view VIEW (t.png)."""
+    run = tmp_path / "run"
+    shutil.copytree(tiny_fitted_run, run)
+    assert (
+        sine(
+            "target", run, "--view", VIEW, "--warp", "32,20>32,12", "--out", tmp_path / "t.png"
+        ).returncode
+        == 0
+    )
+    return run
+
+
+def edit(run: Path, name: str, target: Path, **options) -> dict:
+    cfg = GeometryEditConfig(**{**TINY_GEOMETRY_EDIT, **options})
+    return run_geometry_edit(run, VIEW, target, name, cfg, progress=False)
+
+
+# ---- locks -------------------------------------------------------------------------------------
+HOLDER = """
+import sys, time
+from render.locks import lock_entry
+with lock_entry(sys.argv[1], "edit x"):
+    print("held", flush=True)
+    time.sleep(60)
+"""
+
+
+def test_a_second_process_is_refused_at_once_and_the_lock_dies_with_its_holder(tmp_path):
+    target = tmp_path / "edits" / "x"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLDER, str(target)],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        t0 = time.perf_counter()
+        with pytest.raises(SineError, match=rf"edit x is busy: process {holder.pid} \(") as exc:
+            with locks.lock_entry(target, "edit x"):
+                pass
+        assert time.perf_counter() - t0 < 1.0
+        assert "wait for it to finish" in str(exc.value)
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    with locks.lock_entry(target, "edit x"):  # the OS released it with the killed process
+        with locks.lock_entry(target, "edit x"):  # and locks nest within one process
+            assert (tmp_path / "edits" / ".x.lock").read_text().startswith(f"{os.getpid()} ")
+
+
+def test_a_lock_in_a_new_folder_leaves_nothing_when_the_block_wrote_nothing(tmp_path):
+    with pytest.raises(SineError, match="bad input"):
+        with locks.lock_folder(tmp_path / "new_run", "run"):
+            raise SineError("bad input")
+    assert not (tmp_path / "new_run").exists()
+    with locks.lock_folder(tmp_path / "kept", "run"):
+        (tmp_path / "kept" / "cameras.json").write_text("{}")
+    assert sorted(p.name for p in (tmp_path / "kept").iterdir()) == [".sine.lock", "cameras.json"]
+
+
+@pytest.mark.slow
+def test_two_edits_of_one_name_the_second_is_refused_and_the_first_completes(run, tmp_path):
+    options = flags({**TINY_GEOMETRY_EDIT, "iterations": 400, "log_every": 50})
+    args = ["edit", run, "--target", tmp_path / "t.png", "--view", VIEW, "--name", "x", "--quiet"]
+    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "PYTHONPATH": str(ROOT)}
+    first = subprocess.Popen(
+        [sys.executable, "-m", "sine_cli", *map(str, args), *options],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    lock = run / "edits" / ".x.lock"
+    deadline = time.time() + 60
+    while not (lock.is_file() and lock.read_text().startswith(str(first.pid))):
+        assert time.time() < deadline and first.poll() is None, first.communicate()
+        time.sleep(0.05)
+    t0 = time.perf_counter()
+    second = sine(*args, *options)
+    seconds = time.perf_counter() - t0
+    line = one_line_error(second)
+    assert f"edit x of {run} is busy: process {first.pid} (`sine edit" in line
+    assert seconds < 15  # python, torch and the run's checks; no training
+    assert not (run / "edits" / "x").exists() or first.poll() is not None
+    out, err = first.communicate(timeout=600)
+    assert first.returncode == 0, err
+    done = run / "edits" / "x"
+    for name in ("edit_field.pt", "checkpoint.pt", "edit.json", "metrics.json", "target.png"):
+        assert (done / name).is_file(), name
+    assert not partial_dir(done).exists()
+    again = sine(*args, *options)
+    assert again.returncode == 0 and "already done" in again.stdout
+
+
+# ---- files: modes, full disks ------------------------------------------------------------------
+def test_files_get_the_mode_the_umask_gives(tmp_path):
+    old = os.umask(0o022)
+    try:
+        write_json(tmp_path / "a.json", {"a": 1})
+        io.write_image(tmp_path / "a.png", np.zeros((4, 4, 3), np.float32))
+        io.save_torch(tmp_path / "a.pt", {"x": 1})
+        os.umask(0o077)
+        write_json(tmp_path / "b.json", {"b": 2})
+    finally:
+        os.umask(old)
+    for name in ("a.json", "a.png", "a.pt"):
+        assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o644, name
+    assert stat.S_IMODE((tmp_path / "b.json").stat().st_mode) == 0o600
+
+
+def test_a_full_disk_is_one_line_and_the_previous_file_stays(tmp_path, monkeypatch):
+    path = tmp_path / "metrics.json"
+    write_json(path, {"psnr": 30.0})
+
+    def full(*_):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(io.os, "replace", full)
+    with pytest.raises(SineError, match=r"cannot write .*metrics.json \(no space left"):
+        write_json(path, {"psnr": 0.0})
+    assert io.read_json(path) == {"psnr": 30.0}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["metrics.json"]  # no temporary left
+
+
+def test_a_full_disk_during_a_fit_keeps_the_finished_template(run, monkeypatch, capsys):
+    before = (run / "template" / "field.pt").read_bytes()
+    real_replace = os.replace
+
+    def full_at_publish(src, dst):  # the disk fills up as the new template is written
+        if str(dst).endswith("field.pt"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(io.os, "replace", full_at_publish)
+    fit = {**TINY_FIT, "iterations": 12, "detail_steps": 0, "eval_views": 1, "threads": 1}
+    code = sine_cli.main(["fit", str(run), "--force", "--quiet", *flags(fit)])
+    assert code == 2
+    assert "(no space left on the device" in capsys.readouterr().err
+    assert (run / "template" / "field.pt").read_bytes() == before
+
+
+# ---- damaged results ---------------------------------------------------------------------------
+def test_a_truncated_template_names_the_command_that_rebuilds_it_and_fit_redoes_it(run, capsys):
+    field = run / "template" / "field.pt"
+    field.write_bytes(field.read_bytes()[:100_000])
+    with pytest.raises(SineError) as exc:
+        load_fitted(run)
+    message = str(exc.value)
+    assert message == (
+        f"cannot read {field}: it is truncated or corrupt; make it again with "
+        f"`sine fit {run} --force`"
+    )
+    rendered = sine("render", run, "--views", "test", "--out", run.parent / "r", "--quiet")
+    assert f"`sine fit {run} --force`" in one_line_error(rendered)
+    metrics = fit_template(run, FitConfig(**TINY_FIT), progress=False)
+    assert not metrics.get("skipped")  # not "already done": its output does not load
+    assert "field.pt does not load: it is truncated or corrupt" in capsys.readouterr().out
+    load_fitted(run)
+
+
+def test_a_file_of_python_objects_is_never_loaded_and_torch_advice_is_not_repeated(tmp_path):
+    import torch
+
+    path = tmp_path / "field.pt"
+    torch.save({"field": Path("x")}, path)  # a pickled object, not a tensor
+    with pytest.raises(SineError) as exc:
+        io.load_torch(path, rebuild="`sine fit RUN --force`")
+    assert str(exc.value) == (
+        f"cannot read {path}: it holds Python objects, which are never loaded from a file; "
+        "make it again with `sine fit RUN --force`"
+    )
+    assert "weights_only" not in str(exc.value)
+
+
+# ---- read-only runs ----------------------------------------------------------------------------
+@pytest.mark.slow
+@pytest.mark.skipif(os.geteuid() != 0 or not shutil.which("setpriv"), reason="needs root")
+def test_a_read_only_run_reads_but_refuses_to_write_in_one_line(run, tmp_path):
+    edit(run, "done", tmp_path / "t.png")
+    # a world-readable copy that only root may write; commands run as the user nobody
+    shared = Path(tempfile.mkdtemp(prefix="sine_readonly_"))
+    try:
+        os.chmod(shared, 0o755)
+        shutil.copytree(run, shared / "run")
+        shutil.copy(tmp_path / "t.png", shared / "t.png")
+        (shared / "out").mkdir()
+        os.chmod(shared / "out", 0o777)
+        for path in [shared / "run", *(shared / "run").rglob("*")]:
+            os.chmod(path, 0o755 if path.is_dir() else 0o644)
+        before = io.artefact_digest(shared / "run")
+        nobody = 65534
+        args = ["--view", VIEW, "--quiet", *flags(TINY_GEOMETRY_EDIT)]
+        again = sine(
+            "edit", "run", "--target", "t.png", "--name", "done", *args, user=nobody, cwd=shared
+        )
+        assert again.returncode == 0 and "already done" in again.stdout, again.stderr
+        new = sine(
+            "edit", "run", "--target", "t.png", "--name", "new", *args, user=nobody, cwd=shared
+        )
+        assert "(permission denied: make the folder writable" in one_line_error(new)
+        render = ["render", "run", "--edit", "done", "--views", "test", "--out", "out/r", "--quiet"]
+        assert sine(*render, user=nobody, cwd=shared).returncode == 0
+        assert (shared / "out" / "r" / "rgb").is_dir()
+        assert io.artefact_digest(shared / "run") == before
+    finally:
+        shutil.rmtree(shared)
+
+
+# ---- inputs, checks and work folders -----------------------------------------------------------
+def test_an_edit_is_done_whatever_the_spelling_of_its_target_path(run, tmp_path, monkeypatch):
+    first = edit(run, "x", tmp_path / "t.png")
+    monkeypatch.chdir(tmp_path)
+    again = edit(run, "x", Path("t.png"))  # relative, same file
+    assert again.get("skipped") and again["train_seconds"] == first["train_seconds"]
+    shutil.copy(tmp_path / "t.png", tmp_path / "copy.png")  # another file, the same content
+    assert edit(run, "x", tmp_path / "copy.png").get("skipped")
+
+
+def test_a_transparent_target_is_told_and_leaves_no_work_folder(run, tmp_path):
+    clear = tmp_path / "clear.png"
+    write_rgba(clear, read_image(tmp_path / "t.png"), np.zeros((64, 64), np.float32))
+    proc = sine("edit", run, "--target", clear, "--view", VIEW, "--name", "clear", "--quiet")
+    line = one_line_error(proc)
+    assert "has an empty silhouette: it is fully transparent" in line
+    assert not (run / "edits").exists()  # no work folder, not even the lock (the first edit)
+
+
+def test_an_interrupted_edit_says_it_resumes_and_force_says_what_it_removes(run, tmp_path, capsys):
+    cfg = GeometryEditConfig(**TINY_GEOMETRY_EDIT)
+    assert run_geometry_edit(run, VIEW, tmp_path / "t.png", "x", cfg, stop_at=12, progress=False)
+    capsys.readouterr()
+    edit(run, "x", tmp_path / "t.png")
+    assert f"edit x: resuming from step 12 of {cfg.iterations}" in capsys.readouterr().out
+    run_geometry_edit(run, VIEW, tmp_path / "t.png", "y", cfg, stop_at=12, progress=False)
+    capsys.readouterr()
+    cfg_force = GeometryEditConfig(**{**TINY_GEOMETRY_EDIT, "iterations": 14})
+    run_geometry_edit(run, VIEW, tmp_path / "t.png", "y", cfg_force, force=True, progress=False)
+    out = capsys.readouterr().out
+    assert (
+        f"edit y: --force: removing the interrupted run in {run / 'edits' / 'y.partial'} (" in out
+    )
+    assert " MB)" in out and not partial_dir(run / "edits" / "y").exists()
+
+
+def test_the_edits_listed_when_one_is_missing_are_finished_ones(run, tmp_path):
+    edit(run, "done", tmp_path / "t.png")
+    (run / "edits" / "stale.partial").mkdir()
+    proc = sine("render", run, "--edit", "nope", "--out", tmp_path / "r", "--quiet")
+    assert "(edits there: done);" in one_line_error(proc)
