@@ -22,8 +22,7 @@ import sine_cli
 from edit.geometry_edit import GeometryEditConfig, run_geometry_edit
 from edit.targets import write_rgba
 from recon.fit import FitConfig, fit_template, load_fitted
-from recon.training import partial_dir
-from render import io, locks
+from render import io
 from render.errors import SineError
 from render.io import read_image, write_json
 
@@ -91,6 +90,8 @@ with lock_entry(sys.argv[1], "edit x"):
 
 
 def test_a_second_process_is_refused_at_once_and_the_lock_dies_with_its_holder(tmp_path):
+    from render import locks
+
     target = tmp_path / "edits" / "x"
     holder = subprocess.Popen(
         [sys.executable, "-c", HOLDER, str(target)],
@@ -116,6 +117,8 @@ def test_a_second_process_is_refused_at_once_and_the_lock_dies_with_its_holder(t
 
 
 def test_a_lock_in_a_new_folder_leaves_nothing_when_the_block_wrote_nothing(tmp_path):
+    from render import locks
+
     with pytest.raises(SineError, match="bad input"):
         with locks.lock_folder(tmp_path / "new_run", "run"):
             raise SineError("bad input")
@@ -155,7 +158,7 @@ def test_two_edits_of_one_name_the_second_is_refused_and_the_first_completes(run
     done = run / "edits" / "x"
     for name in ("edit_field.pt", "checkpoint.pt", "edit.json", "metrics.json", "target.png"):
         assert (done / name).is_file(), name
-    assert not partial_dir(done).exists()
+    assert not done.with_name("x.partial").exists()
     again = sine(*args, *options)
     assert again.returncode == 0 and "already done" in again.stdout
 
@@ -307,7 +310,7 @@ def test_an_interrupted_edit_says_it_resumes_and_force_says_what_it_removes(run,
     assert (
         f"edit y: --force: removing the interrupted run in {run / 'edits' / 'y.partial'} (" in out
     )
-    assert " MB)" in out and not partial_dir(run / "edits" / "y").exists()
+    assert " MB)" in out and not (run / "edits" / "y.partial").exists()
 
 
 def test_the_edits_listed_when_one_is_missing_are_finished_ones(run, tmp_path):
