@@ -1,7 +1,8 @@
 """Which object a bench case synthesises: a shared mesh by name, any mesh file, or a procedural one.
 
 spot, avocado          the textured meshes of ../shared/data/meshes
-toycar, figurine       `recon.procedural` objects
+toycar, figurine,      `recon.procedural` objects (the mug: a handle on one side; the
+mug, chair             chair: thin legs and slats)
 path/to/mesh.obj       any mesh `sine synth --mesh` reads (OBJ/GLB/GLTF/PLY); the case is
                        named after the file's stem (its folder in the bench's --out)
 """

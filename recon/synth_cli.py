@@ -7,12 +7,13 @@ import argparse
 from render.configs import add_options, from_args
 
 DESCRIPTION = """\
-Renders a textured mesh (--mesh) or a built-in procedural object (--procedural toycar|figurine)
-from a ring of cameras looking at the origin, by ray casting with Lambertian + ambient shading
-under a fixed light. Writes images/, masks/, depth/ (camera-z .npy), labels/ (uint16 part ids),
-parts.json, transforms.json (nerfstudio, OpenGL axes), cameras.json, mesh.ply (the normalised
-ground-truth mesh with vertex colours) and synth.json. With --edit geometric/texture, the edited
-object is rendered from the same cameras into edits/<kind>/ with edit.json.
+Renders a textured mesh (--mesh) or a built-in procedural object (--procedural
+toycar|figurine|mug|chair) from a ring of cameras looking at the origin, by ray casting with
+Lambertian + ambient shading under a fixed light. Writes images/, masks/, depth/ (camera-z .npy),
+labels/ (uint16 part ids), parts.json, transforms.json (nerfstudio, OpenGL axes), cameras.json,
+mesh.ply (the normalised ground-truth mesh with vertex colours) and synth.json. With --edit
+geometric/texture, the edited object is rendered from the same cameras into edits/<kind>/ with
+edit.json.
 Every 8th view (0, 8, 16, ...) is a held-out "test" view.
 """
 
