@@ -30,6 +30,7 @@ import os
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse
+import contextlib
 import json
 import sys
 import time
@@ -39,7 +40,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_objects import case_name, synth_source  # noqa: E402
+from bench_objects import GRID_OBJECTS, case_name, synth_source  # noqa: E402
 
 # ours with one option changed: the ablations, and the symmetric prior (beyond the paper)
 VARIANTS = {
@@ -103,31 +104,112 @@ def pick_edit_view(run, syn: Path) -> int:
     return best_k
 
 
-def edited_part(syn: Path, cam, plane: np.ndarray) -> np.ndarray:
-    """[H, W] bool: pixels of the synth camera `cam` whose visible surface belongs to the edited
-    part (lies above the GT edit's `plane` [4]) in the GT original or in the GT edit (synth
-    depth, synth units)."""
+def edited_part(syn: Path, cam, params: dict, gt) -> np.ndarray:
+    """[H, W] bool: pixels of the synth camera `cam` whose visible surface the GT edit moves
+    (`recon.synth.gt_displacement` > 0) in the GT original or in the GT edit (synth depth,
+    synth units)."""
     from edit.shape_prior import back_project
+    from recon.synth import gt_displacement
     from render.io import read_depth
 
     inside = np.zeros(cam.height * cam.width, bool)
     for depth_dir in (syn / "depth", syn / "edits" / "geometric" / "depth"):
         z = read_depth(depth_dir / f"{Path(cam.name).stem}.npy").ravel()  # [H*W] camera z, 0: none
-        points = back_project(cam, cam.pixel_grid(), z)
-        inside |= (z > 0) & (points @ plane[:3] > plane[3])  # above the plane: stretched
+        hit = z > 0
+        points = back_project(cam, cam.pixel_grid()[hit], z[hit])
+        moved = np.linalg.norm(gt_displacement(points, params, gt), axis=1) > 1e-6
+        inside[np.flatnonzero(hit)[moved]] = True
     return inside.reshape(cam.height, cam.width)
+
+
+# ---- oracles: the ground truth put in place of one stage of the method ----------------------
+def gt_move(run, syn: Path):
+    """points [N, 3] in run units -> the same points moved by the GT edit (run units): the GT
+    displacement (`recon.synth.gt_displacement`, synth units) carried through the recon's
+    normalisation (x_run = scale * R (x_in - center))."""
+    from recon.synth import gt_displacement, load_gt_edit
+    from render.mesh_export import denormalize_points
+
+    cams = run.load_cameras()
+    params, gt = load_gt_edit(syn / "edits" / "geometric")
+    rotation = np.eye(3) if cams.rotation is None else np.asarray(cams.rotation).reshape(3, 3)
+
+    def move(points: np.ndarray) -> np.ndarray:
+        x_in = denormalize_points(points, cams.scale, cams.center, cams.rotation)
+        return points + float(cams.scale) * gt_displacement(x_in, params, gt) @ rotation.T
+
+    return move
+
+
+def gt_prior(move, tol: float = 1e-4):
+    """A stand-in for `build_prior_mesh`: the proxy moved by the GT displacement (moved vertices
+    are the handles, the others anchors)."""
+    from edit.shape_prior import PriorMesh
+
+    def build(camera, vertices, triangles, *args, **kwargs):
+        moved = move(vertices)
+        displacement = np.linalg.norm(moved - vertices, axis=1)
+        return PriorMesh(
+            vertices=moved,
+            triangles=triangles,
+            displacement=displacement,
+            handle_ids=np.flatnonzero(displacement > tol),
+            anchor_ids=np.flatnonzero(displacement <= tol),
+            mirror_plane=None,
+        )
+
+    return build
+
+
+def gt_deformed_scene(template, move, iterations: int = 30):
+    """The template rendered through the GT deformation, its colours unchanged: a point y of the
+    edited object is the template's point x with x + d(x) = y (fixed-point iteration
+    x <- y - d(x)), sampled in the band around the proxy moved by the GT displacement."""
+    import dataclasses
+
+    import torch
+
+    from render.sampler import BandSampler, ProxyRaycaster
+
+    def inverse(y: np.ndarray) -> np.ndarray:
+        x = y.copy()
+        for _ in range(iterations):
+            x = y - (move(x) - x)
+        return x
+
+    class GTDeformedField(torch.nn.Module):
+        def __init__(self, field):
+            super().__init__()
+            self.field = field
+
+        def forward(self, points, dirs):
+            x = inverse(points.detach().cpu().numpy().astype(np.float64))
+            return self.field(torch.from_numpy(x).to(points), dirs)
+
+    vertices, triangles = template.mesh()
+    moved = move(vertices)
+    cfg = template.fit_config
+    sampler = BandSampler(
+        ProxyRaycaster((moved, triangles), inflate=cfg.band_width),
+        cfg.band_samples,
+        cfg.coarse_samples,
+    )
+    return dataclasses.replace(
+        template, field=GTDeformedField(template.field), sampler=sampler, _mesh=(moved, triangles)
+    )
 
 
 def score(run, syn: Path, scene, template, views: list[int]) -> tuple[dict, list]:
     from skimage.metrics import structural_similarity
 
     from recon.rundir import RunDir
-    from render.io import read_image, read_json, read_mask
+    from recon.synth import load_gt_edit
+    from render.io import read_image, read_mask
     from render.metrics import psnr
 
     frames = run.load_cameras().frames
     synth_cams = {c.name: c for c in RunDir(syn).load_cameras().frames}  # synth units
-    plane = np.asarray(read_json(syn / "edits" / "geometric" / "edit.json")["plane"])
+    params, gt_mesh = load_gt_edit(syn / "edits" / "geometric")
     keys = ("psnr", "psnr_image", "ssim", "iou", "unedited", "pixels")
     rows, per = [], {key: [] for key in keys}
     for k in views:
@@ -142,7 +224,7 @@ def score(run, syn: Path, scene, template, views: list[int]) -> tuple[dict, list
         sil = out["opacity"] > 0.5
         obj = gt_mask | sil
         unchanged = (gt_mask == orig_mask) & orig_mask & (np.abs(gt - orig).max(-1) < 0.02)
-        outside = unchanged & ~edited_part(syn, synth_cams[cam.name], plane)
+        outside = unchanged & ~edited_part(syn, synth_cams[cam.name], params, gt_mesh)
         per["psnr"].append(psnr(pred[obj], gt[obj]))
         per["psnr_image"].append(psnr(pred, gt))
         per["ssim"].append(float(structural_similarity(gt, pred, channel_axis=2, data_range=1.0)))
@@ -164,24 +246,98 @@ def score(run, syn: Path, scene, template, views: list[int]) -> tuple[dict, list
     return metrics, rows
 
 
+# the grid's GT edit kinds (synth units: the object within radius 0.8 of the origin, up +z)
+EDIT_KINDS = {
+    # the part above the object's suggested plane (else z = 0) stretched 1.5x upwards
+    "vertical": {},
+    # the part beyond x = 0.2 stretched 1.5x sideways (a plane with a horizontal normal)
+    "sideways": {"edit_plane": [1.0, 0.0, 0.0, 0.2]},
+    # the part beyond a plane tilted 45 degrees stretched 1.5x along its normal
+    "tilted": {"edit_plane": [0.70710678, 0.0, 0.70710678, 0.2]},
+    # one part (the object's suggested part, else the upper half) scaled 1.3x about its centre
+    "scale_part": {"edit_operation": "scale_part", "edit_scale": 1.3},
+}
+# the object's truth put in place of one stage of ours (see gt_prior, gt_deformed_scene)
+ORACLES = ("oracle_prior", "oracle_deform")
+QUICK = {"objects": ["toycar", "mug"], "edits": ["vertical", "sideways"]}
+
+
+def gt_edit(source: str, work: Path, kind: str, size: int, views: int) -> Path:
+    """The synth folder of the object's GT edit `kind`, rendered with the base capture's
+    cameras (work/synth), so one template serves every kind."""
+    from recon.synth import SynthConfig, synthesize
+
+    base = work / "synth"
+    if kind == "vertical":
+        return base
+    syn = work / f"gt_{kind}"
+    if not (syn / "edits" / "geometric" / "edit.json").is_file():
+        synthesize(
+            SynthConfig(
+                out=syn,
+                views=views,
+                width=size,
+                height=size,
+                edit=["geometric"],
+                cameras_from=base,
+                **EDIT_KINDS[kind],
+                **synth_source(source),
+            ),
+            progress=False,
+        )
+    return syn
+
+
+def run_method(method, run, syn, k, cfg, name):
+    """(metrics of the edit, its scene) of one method on view k of the GT edit in `syn`."""
+    from unittest import mock
+
+    from edit import geometry_edit
+    from edit.geometry_edit import run_geometry_edit
+    from edit.scene import load_scene
+
+    cam = run.load_cameras().frames[k]
+    target = syn / "edits" / "geometric" / "images" / cam.name
+    mask = syn / "edits" / "geometric" / "masks" / cam.name
+    template = load_scene(run.root)
+    if method == "template":  # the reference: no edit at all
+        return {}, template
+    if method == "oracle_deform":
+        return {}, gt_deformed_scene(template, gt_move(run, syn))
+    prior = mock.patch.object(geometry_edit, "build_prior_mesh", gt_prior(gt_move(run, syn)))
+    with prior if method == "oracle_prior" else contextlib.nullcontext():
+        m = run_geometry_edit(run.root, k, target, name, cfg, mask=mask, progress=False)
+    return m, load_scene(run.root, edit=name)
+
+
+def contact_sheet(rows: list[list[np.ndarray]]) -> np.ndarray:
+    """Rows of images (held-out views) of columns (template | methods | GT) -> one image."""
+    return np.concatenate([np.concatenate(row, axis=1) for row in rows], axis=0)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("--out", type=Path, required=True, help="work and results folder")
-    ap.add_argument("--quick", action="store_true", help="toycar only, ours + naive, fewer steps")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"{' and '.join(QUICK['objects'])}, {' and '.join(QUICK['edits'])}, 300 steps",
+    )
     ap.add_argument(
         "--objects",
         nargs="+",
-        default=["toycar", "figurine", "spot"],
-        help="toycar, figurine, spot, avocado, or any mesh file (OBJ/GLB/GLTF/PLY; its part "
-        "above the middle plane is stretched), named by its stem",
+        default=list(GRID_OBJECTS),
+        help="toycar, figurine, mug, chair, spot, avocado, bob, or any mesh file (OBJ/GLB/GLTF/"
+        "PLY; its part above the middle plane is the part edited), named by its stem",
     )
+    ap.add_argument("--edits", nargs="+", default=list(EDIT_KINDS), choices=list(EDIT_KINDS))
     ap.add_argument(
         "--methods",
         nargs="+",
-        default=["ours", "naive", "no_gp", "no_cyc", "no_reg"],
-        choices=["template", "ours", "naive", *VARIANTS],
+        default=["template", "ours", "naive", *ORACLES],
+        choices=["template", "ours", "naive", *ORACLES, *VARIANTS],
     )
     ap.add_argument("--size", type=int, default=256, help="image size (square)")
     ap.add_argument("--views", type=int, default=36, help="views on the ring")
@@ -192,12 +348,12 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
     args = ap.parse_args()
     if args.quick:
-        args.objects, args.methods = ["toycar"], ["ours", "naive"]
+        args.objects, args.edits = QUICK["objects"], QUICK["edits"]
         args.iterations = args.iterations or 300
 
     import dataclasses
 
-    from edit.geometry_edit import GeometryEditConfig, run_geometry_edit
+    from edit.geometry_edit import GeometryEditConfig
     from edit.scene import load_scene
     from render.io import write_image, write_json
 
@@ -206,76 +362,102 @@ def main() -> int:
     for source in args.objects:
         obj = case_name(source)
         t0 = time.perf_counter()
-        syn, run, fit = prepare_object(
-            source, args.out / obj, args.size, args.views, args.fit_iterations
-        )
+        work = args.out / obj
+        syn, run, fit = prepare_object(source, work, args.size, args.views, args.fit_iterations)
+        fidelity = fit.get("heldout_psnr_object", float("nan"))
         print(
             f"[{obj}] template: held-out PSNR {fit.get('heldout_psnr', float('nan')):.2f} dB "
-            f"(object {fit.get('heldout_psnr_object', float('nan')):.2f}), {time.perf_counter() - t0:.0f} s"
+            f"(object {fidelity:.2f}), {time.perf_counter() - t0:.0f} s",
+            flush=True,
         )
-        k = pick_edit_view(run, syn)
-        n = len(run.load_cameras().frames)
-        views = [v for v in range(0, n, 4) if v != k]
         template = load_scene(run.root)
-        cam = run.load_cameras().frames[k]
-        target = syn / "edits" / "geometric" / "images" / cam.name
-        mask = syn / "edits" / "geometric" / "masks" / cam.name
-        sheets = None
-        for method in args.methods:
-            cfg = GeometryEditConfig(
-                method="naive" if method == "naive" else "ours", previews=0, threads=args.threads
-            )
-            cfg = dataclasses.replace(cfg, **VARIANTS.get(method, {}))
-            if args.iterations:
-                cfg.iterations = args.iterations
-            t1 = time.perf_counter()
-            if method == "template":  # the reference: no edit at all
-                m, seconds, scene = {}, 0.0, template
-            else:
-                m = run_geometry_edit(run.root, k, target, method, cfg, mask=mask, progress=False)
+        for kind in args.edits:
+            syn = gt_edit(source, work, kind, args.size, args.views)
+            k = pick_edit_view(run, syn)
+            n = len(run.load_cameras().frames)
+            views = [v for v in range(0, n, 4) if v != k]
+            columns = None
+            for method in args.methods:
+                cfg = GeometryEditConfig(
+                    method="naive" if method == "naive" else "ours",
+                    previews=0,
+                    threads=args.threads,
+                )
+                cfg = dataclasses.replace(cfg, **VARIANTS.get(method, {}))
+                if args.iterations:
+                    cfg.iterations = args.iterations
+                t1 = time.perf_counter()
+                m, scene = run_method(method, run, syn, k, cfg, f"{kind}_{method}")
                 seconds = m.get("total_seconds", time.perf_counter() - t1)
-                scene = load_scene(run.root, edit=method)
-            metrics, rows = score(run, syn, scene, template, views)
-            case = {
-                "object": obj,
-                "method": method,
-                **metrics,
-                "seconds": float(seconds),
-                "edit_view": k,
-                "edited_view_psnr_object": m.get("edited_view_psnr_object"),
-                "edited_view_silhouette_iou": m.get("edited_view_silhouette_iou"),
-                "iterations": m.get("iterations"),
-            }
-            cases.append(case)
-            print(json.dumps(case), flush=True)
-            cols = [r[1] for r in rows]
-            sheets = [[r[0]] for r in rows] if sheets is None else sheets
-            for row, col in zip(sheets, cols, strict=True):
-                row.append(col)
-        if sheets:
-            gts = [score_row[2] for score_row in rows]
-            grid = np.concatenate(
-                [np.concatenate(row + [gt], axis=1) for row, gt in zip(sheets, gts, strict=True)],
-                axis=0,
+                metrics, rows = score(run, syn, scene, template, views)
+                case = {
+                    "object": obj,
+                    "edit": kind,
+                    "method": method,
+                    **metrics,
+                    "template_fidelity": fidelity,
+                    "seconds": float(seconds),
+                    "edit_view": k,
+                    "edited_view_psnr_object": m.get("edited_view_psnr_object"),
+                    "edited_view_silhouette_iou": m.get("edited_view_silhouette_iou"),
+                    "iterations": m.get("iterations"),
+                }
+                cases.append(case)
+                print(json.dumps(case), flush=True)
+                if columns is None:
+                    columns = [[r[0]] for r in rows]  # the template
+                for column, r in zip(columns, rows, strict=True):
+                    column.append(r[1])
+            if columns:
+                sheet = contact_sheet([c + [r[2]] for c, r in zip(columns, rows, strict=True)])
+                write_image(args.out / f"{obj}_{kind}_sheet.png", sheet)
+            write_json(
+                args.out / "results.json",
+                {"cases": cases, "columns": ["template", *args.methods, "ground truth"]},
             )
-            write_image(args.out / f"{obj}_sheet.png", grid)
-        write_json(
-            args.out / "results.json",
-            {"cases": cases, "columns": ["template", *args.methods, "ground truth"]},
-        )
-
     print()
-    print(
-        f"{'object':10s} {'method':8s} {'PSNR obj':>9s} {'PSNR img':>9s} {'SSIM':>6s} {'sil IoU':>8s} {'unedited':>9s} {'seconds':>8s}"
-    )
+    print_table(cases)
+    return 0
+
+
+def print_table(cases: list[dict]) -> None:
+    """One markdown table row per case (object x edit x method), then the oracle split: the dB
+    each stage loses, per case and on the mean."""
+    print("| object | edit | method | PSNR obj | PSNR img | SSIM | sil IoU | unedited | s |")
+    print("|---|---|---|---:|---:|---:|---:|---:|---:|")
     for c in cases:
         une = c["unedited_psnr"]
         print(
-            f"{c['object']:10s} {c['method']:8s} {c['heldout_psnr']:9.2f} {c['heldout_psnr_image']:9.2f} "
-            f"{c['heldout_ssim']:6.3f} {c['heldout_silhouette_iou']:8.3f} "
-            f"{une if une is None else round(une, 2)!s:>9s} {c['seconds']:8.0f}"
+            f"| {c['object']} | {c['edit']} | {c['method']} | {c['heldout_psnr']:.2f} | "
+            f"{c['heldout_psnr_image']:.2f} | {c['heldout_ssim']:.3f} | "
+            f"{c['heldout_silhouette_iou']:.3f} | {'-' if une is None else f'{une:.2f}'} | "
+            f"{c['seconds']:.0f} |"
         )
-    return 0
+    by = {(c["object"], c["edit"], c["method"]): c["heldout_psnr"] for c in cases}
+    pairs = sorted({(c["object"], c["edit"]) for c in cases})
+    stages = [
+        ("template fidelity -> GT deformation", "fidelity", "oracle_deform"),
+        ("GT deformation -> learnt from the GT prior", "oracle_deform", "oracle_prior"),
+        ("GT prior -> our prior", "oracle_prior", "ours"),
+    ]
+    fidelity = {(c["object"], c["edit"]): c["template_fidelity"] for c in cases}
+    print()
+    print("| object | edit | " + " | ".join(name for name, _, _ in stages) + " |")
+    print("|---|---|" + "---:|" * len(stages))
+    losses = {name: [] for name, _, _ in stages}
+    for pair in pairs:
+        cells = []
+        for name, a, b in stages:
+            va = fidelity[pair] if a == "fidelity" else by.get((*pair, a))
+            vb = by.get((*pair, b))
+            if va is None or vb is None:
+                cells.append("-")
+                continue
+            losses[name].append(va - vb)
+            cells.append(f"{va - vb:+.2f}")
+        print(f"| {pair[0]} | {pair[1]} | " + " | ".join(cells) + " |")
+    means = [f"{np.mean(v):+.2f}" if v else "-" for v in losses.values()]
+    print("| mean | | " + " | ".join(means) + " |")
 
 
 if __name__ == "__main__":

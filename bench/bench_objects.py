@@ -1,6 +1,6 @@
 """Which object a bench case synthesises: a shared mesh by name, any mesh file, or a procedural one.
 
-spot, avocado          the textured meshes of ../shared/data/meshes
+spot, avocado, bob     the textured meshes of ../shared/data/meshes (bob: a duck)
 toycar, figurine,      `recon.procedural` objects (the mug: a handle on one side; the
 mug, chair             chair: thin legs and slats)
 path/to/mesh.obj       any mesh `sine synth --mesh` reads (OBJ/GLB/GLTF/PLY); the case is
@@ -15,7 +15,11 @@ SHARED_MESHES = Path(__file__).resolve().parents[2] / "shared/data/meshes"
 MESHES = {
     "spot": SHARED_MESHES / "spot/spot_triangulated.obj",
     "avocado": SHARED_MESHES / "avocado/avocado.obj",
+    "bob": SHARED_MESHES / "bob/bob_tri.obj",
 }
+# the editing benchmarks' objects: toys, shared textured meshes, an asymmetric object and one
+# with thin parts
+GRID_OBJECTS = ("toycar", "figurine", "spot", "avocado", "bob", "mug", "chair")
 MESH_SUFFIXES = (".obj", ".glb", ".gltf", ".ply", ".off", ".stl")
 
 

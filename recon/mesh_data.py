@@ -39,7 +39,8 @@ class MeshData:
     part_plane: np.ndarray | None = None  # [4] (n, D): label 1 below, 2 above (rest positions)
     rest_vertices: np.ndarray | None = None  # [V, 3]; None = `vertices`
     weld: np.ndarray | None = None  # [V] index of the vertex after merging equal positions
-    recolor: dict | None = None  # texture edit applied to the albedo: {part, hue_shift_deg, color}
+    recolor: dict | None = None  # texture edit of one part: {part, hue_shift_deg, color} or
+    # {part, decal: {pattern, colors, size, center, axis}} (see recolor_albedo)
 
     def __post_init__(self):
         self.vertices = np.asarray(self.vertices, dtype=np.float64).reshape(-1, 3)
@@ -84,7 +85,7 @@ class MeshData:
                 if sel.any():
                     uv = np.einsum("nk,nkd->nd", bary[sel], self.face_uvs[face_ids[sel]])
                     albedo[sel] = sample_texture(image, uv)
-        return self._recolored(albedo, self.labels_at(face_ids, rest_points))
+        return self._recolored(albedo, self.labels_at(face_ids, rest_points), rest_points)
 
     # ---- per-vertex values (the exported GT mesh) -----------------------------------------
     def vertex_faces(self) -> np.ndarray:
@@ -109,15 +110,15 @@ class MeshData:
                 if sel.any():
                     corner_uv = self.face_uvs[sel].reshape(-1, 2)
                     albedo[self.faces[sel].ravel()] = sample_texture(image, corner_uv)
-        return self._recolored(albedo, self.vertex_labels())
+        return self._recolored(albedo, self.vertex_labels(), self.rest_vertices)
 
-    def _recolored(self, albedo: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    def _recolored(self, albedo: np.ndarray, labels: np.ndarray, rest_points: np.ndarray):
         if not self.recolor:
             return albedo
         sel = labels == int(self.recolor["part"])
         if sel.any():
             albedo = albedo.copy()
-            albedo[sel] = recolor_albedo(albedo[sel], self.recolor)
+            albedo[sel] = recolor_albedo(albedo[sel], self.recolor, rest_points[sel])
         return albedo
 
     # ---- geometry -------------------------------------------------------------------------
@@ -177,8 +178,50 @@ def sample_texture(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return (top * (1 - fy) + bottom * fy).astype(np.float32)
 
 
-def recolor_albedo(albedo: np.ndarray, recolor: dict) -> np.ndarray:
-    """Texture edit of colours [N, 3]: a solid `color`, else a hue rotation by `hue_shift_deg`."""
+def decal_pattern(points: np.ndarray, decal: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Where a decal paints the rest-space points [N, 3], and with which of its two colours:
+    (painted [N] bool, colour index [N] 0 or 1). A function of the 3D point alone, so the same
+    surface point has the same colour in every view, and the decal moves with a geometric edit.
+
+    With q = (p - center) / size and a = axis (unit):
+    - stripes: bands of width `size` across `axis`: colour floor(q.a + 1/2) mod 2 (colour 0 on
+      the band through the centre), everywhere;
+    - checker: cubes of side `size`: colour (sum of floor(q + 1/2)) mod 2, everywhere (on a flat
+      face, a checkerboard);
+    - disc: a roundel projected along `axis` onto the side it points to (q.a > 0): colour 0
+      within distance 1 (one `size`) of the axis line, colour 1 in the ring from 1 to 1.5; the
+      rest keeps its colour.
+    """
+    q = (np.asarray(points, np.float64) - np.asarray(decal["center"], np.float64)) / float(
+        decal["size"]
+    )
+    pattern = decal["pattern"]
+    if pattern == "checker":
+        index = np.floor(q + 0.5).astype(np.int64).sum(axis=1) % 2
+        return np.ones(len(q), dtype=bool), index
+    axis = np.asarray(decal["axis"], np.float64)
+    axis = axis / np.linalg.norm(axis)
+    along = q @ axis
+    if pattern == "stripes":
+        return np.ones(len(q), dtype=bool), np.floor(along + 0.5).astype(np.int64) % 2
+    if pattern == "disc":
+        radial = np.linalg.norm(q - along[:, None] * axis, axis=1)
+        painted = (along > 0) & (radial < 1.5)
+        return painted, (radial >= 1.0).astype(np.int64)
+    raise ValueError(f"unknown decal pattern {pattern!r}")
+
+
+def recolor_albedo(albedo: np.ndarray, recolor: dict, points: np.ndarray | None = None):
+    """Texture edit of colours [N, 3] at rest points [N, 3]: a `decal` (`decal_pattern`; needs
+    the points), else a solid `color`, else a hue rotation by `hue_shift_deg`."""
+    if recolor.get("decal") is not None:
+        if points is None:
+            raise ValueError("a decal needs the surface points")
+        painted, index = decal_pattern(points, recolor["decal"])
+        colors = np.asarray(recolor["decal"]["colors"], np.float32).reshape(2, 3)
+        out = np.array(albedo, dtype=np.float32, copy=True)
+        out[painted] = colors[index[painted]]
+        return out
     if recolor.get("color") is not None:
         return np.broadcast_to(np.asarray(recolor["color"], np.float32), albedo.shape).copy()
     hsv = cv2.cvtColor(np.clip(albedo, 0, 1).astype(np.float32)[None], cv2.COLOR_RGB2HSV)[0]

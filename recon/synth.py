@@ -6,8 +6,14 @@ ray cast (render.raycast) from a ring of cameras looking at the origin. Shading 
 ambient under a light fixed in the world, so the object's appearance is the same from every view
 (what a radiance field can reproduce). Each view gives RGB, mask, camera-z depth and part labels.
 
-Known 3D edits of the same mesh (a smooth stretch of the part above a plane, a recoloured part or
-a new texture image) rendered from the same cameras are the ground truth of an edit.
+Known 3D edits of the same mesh rendered from the same cameras are the ground truth of an edit:
+geometric (`--edit-operation`): a smooth stretch of the part above a plane along its normal
+(vertical, sideways or tilted, as the plane), or one part scaled uniformly about its centre;
+texture (`--edit-texture-operation`): a part recoloured (hue rotation or a colour), a two-colour
+decal (stripes, checker or a disc) painted on a part, or a new texture image. Each edit's folder
+holds `edit.json` (the operation and every parameter) and, for a geometric edit,
+`gt_displacement.npz` (the GT mesh and its displacement per vertex); `gt_displacement` moves any
+points by the GT edit (e.g. a reconstructed proxy mesh: an oracle shape prior).
 
 Behind the object (`--background`): a plain colour, a procedural cluttered room (`clutter`: random
 coloured shapes, stripes and noise at several scales painted on a large sphere fixed in the world,
@@ -34,7 +40,14 @@ import numpy as np
 from recon import procedural
 from recon.mesh_data import MeshData, plane_side
 from recon.mesh_data import sample_texture as sample_texture  # re-exported
-from render.cameras import Camera, CameraSet, cameras_to_transforms, look_at, save_cameras
+from render.cameras import (
+    Camera,
+    CameraSet,
+    cameras_to_transforms,
+    load_cameras,
+    look_at,
+    save_cameras,
+)
 from render.configs import option, to_dict
 from render.errors import SineError
 from render.io import (
@@ -54,6 +67,14 @@ DEFAULT_LIGHTS = (  # (direction towards the light, intensity), fixed in the wor
 )
 UP_AXES = ("auto", "z", "y", "x", "-z", "-y", "-x")
 EDIT_KINDS = ("geometric", "texture")
+GEOMETRIC_OPERATIONS = ("stretch", "scale_part")  # edit.json: stretch_above_plane, scale_part
+TEXTURE_OPERATIONS = ("recolor", "decal")  # edit.json: recolor_part, decal
+DECAL_PATTERNS = ("stripes", "checker", "disc")
+DECAL_AXES = {"stripes": (0.0, 0.0, 1.0), "disc": (1.0, 0.0, 0.0)}  # default --edit-decal-axis
+GT_DISPLACEMENT_FILE = "gt_displacement.npz"  # in a geometric edit's folder
+PART_TIE_TOLERANCE = (
+    1e-6  # run units: a point this close to the part and another goes with the part
+)
 OUTPUT_FORMATS = ("sine", "nerf-synthetic")
 NERF_SYNTHETIC_DIR = "nerf_synthetic"  # where --format nerf-synthetic writes its layout
 
@@ -252,14 +273,194 @@ def geometric_edit(mesh: MeshData, plane, scale: float, falloff: float) -> MeshD
     return mesh.replace(vertices=moved)
 
 
+def part_vertex_mask(mesh: MeshData, part: int) -> np.ndarray:
+    """[V] bool: the vertices that belong to part `part`, for `scale_part_edit`.
+
+    With face parts, the vertices of the part's faces and every vertex at the same position as one
+    of them (a vertex shared with another part moves with the part, so the mesh stays connected:
+    the other part's faces at the seam stretch); with a plane split (`part_plane`), the vertices
+    on the part's side of the plane (rest positions).
+    """
+    if mesh.part_plane is not None:
+        own = mesh.vertex_labels() == int(part)
+    else:
+        own = np.zeros(len(mesh.vertices), dtype=bool)
+        own[mesh.faces[mesh.face_parts == int(part)].ravel()] = True
+    shared = np.zeros(int(mesh.weld.max()) + 1 if len(mesh.weld) else 0, dtype=bool)
+    shared[mesh.weld[own]] = True
+    return shared[mesh.weld]
+
+
+def part_center(mesh: MeshData, part: int) -> np.ndarray:
+    """Centre [3] of the bounding box of part `part`'s vertices (rest positions): independent of
+    how finely the part is tessellated, unlike the mean of its vertices."""
+    points = mesh.rest_vertices[part_vertex_mask(mesh, part)]
+    if not len(points):
+        raise SineError(f"part {part} has no vertices")
+    return 0.5 * (points.min(axis=0) + points.max(axis=0))
+
+
+def scale_part_edit(
+    mesh: MeshData, part: int, scale: float, center=None
+) -> tuple[MeshData, np.ndarray]:
+    """The mesh with part `part` scaled by `scale` about `center` (default: `part_center`):
+    x' = center + scale * (x - center) for the part's vertices (`part_vertex_mask`), the other
+    vertices unchanged (rest positions kept, so textures and labels move with the part).
+    Returns (edited mesh, center [3])."""
+    center = part_center(mesh, part) if center is None else np.asarray(center, np.float64)
+    moves = part_vertex_mask(mesh, part)
+    moved = mesh.vertices.copy()
+    moved[moves] += (float(scale) - 1.0) * (mesh.vertices[moves] - center)
+    return mesh.replace(vertices=moved), center.reshape(3)
+
+
+@dataclass
+class GTMesh:
+    """The original mesh a geometric edit was applied to (welded, as `mesh.ply`; run units)."""
+
+    vertices: np.ndarray  # [W, 3] float64, rest positions
+    faces: np.ndarray  # [F, 3] int
+    face_parts: np.ndarray  # [F] part ids (unused where edit.json has a part_plane)
+    displacement: np.ndarray | None = None  # [W, 3] the GT displacement of each vertex
+
+
+def gt_mesh(mesh: MeshData, edited: MeshData | None = None) -> GTMesh:
+    """The welded original mesh (the vertices and order of `mesh.ply`) and, given the edited
+    mesh, the displacement of each of its vertices."""
+    vertices, faces, first = mesh.welded()
+    displacement = None if edited is None else edited.vertices[first] - vertices
+    return GTMesh(vertices, faces, mesh.face_parts.copy(), displacement)
+
+
+def load_gt_edit(edit_dir: str | Path) -> tuple[dict, GTMesh | None]:
+    """(edit.json, the GT mesh of `gt_displacement.npz` or None) of an edit folder
+    (OUT/edits/KIND), the arguments of `gt_displacement`."""
+    from render.io import read_json
+
+    edit_dir = Path(edit_dir)
+    if not (edit_dir / "edit.json").is_file():
+        raise SineError(f"{edit_dir} has no edit.json (is it a `sine synth` edit folder?)")
+    edit = read_json(edit_dir / "edit.json")
+    path = edit_dir / GT_DISPLACEMENT_FILE
+    if not path.is_file():
+        return edit, None
+    with np.load(path) as data:
+        gt = GTMesh(*(np.asarray(data[k]) for k in ("vertices", "faces", "face_parts")))
+        gt.displacement = np.asarray(data["displacement"])
+    return edit, gt
+
+
+def _save_gt_mesh(path: Path, gt: GTMesh) -> None:
+    from render.io import atomic_path
+
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez(
+            f,
+            vertices=gt.vertices,
+            faces=gt.faces,
+            face_parts=gt.face_parts,
+            displacement=gt.displacement,
+        )
+
+
+def gt_part_membership(points: np.ndarray, edit: dict, gt: GTMesh | None) -> np.ndarray:
+    """[N] bool: which points move with the part of a `scale_part` edit.
+
+    With a plane split (edit.json `part_plane`): the points on the part's side of the plane.
+    Otherwise: a point belongs to the part when the nearest point of the GT surface on the
+    part's triangles is no further (within PART_TIE_TOLERANCE) than the nearest on the other
+    parts' triangles, i.e. the part of the nearest GT surface point, ties to the part. At the GT
+    vertices this is exactly `part_vertex_mask` (a vertex shared with another part moves);
+    nearest surface rather than nearest vertex, as a point on a big coarse face (a box's top)
+    can be nearer to a vertex of a neighbouring part than to any of its own face's vertices.
+    """
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    part = int(edit["part"])
+    if edit.get("part_plane") is not None:
+        side = plane_side(points, edit["part_plane"]) > 0
+        return side if part == 2 else ~side
+    if gt is None:
+        raise SineError(
+            "a scale_part edit needs the GT mesh to tell which points belong to the part: "
+            f"load it with recon.synth.load_gt_edit (the edit folder's {GT_DISPLACEMENT_FILE})"
+        )
+    import open3d as o3d
+
+    query = o3d.core.Tensor(points.astype(np.float32))
+    distances = []
+    for faces in (gt.faces[gt.face_parts == part], gt.faces[gt.face_parts != part]):
+        if not len(faces):
+            distances.append(np.full(len(points), np.inf))
+            continue
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(
+            o3d.core.Tensor(gt.vertices.astype(np.float32)),
+            o3d.core.Tensor(faces.astype(np.uint32)),
+        )
+        distances.append(scene.compute_distance(query).numpy().astype(np.float64))
+    return distances[0] <= distances[1] + PART_TIE_TOLERANCE
+
+
+def gt_displacement(points: np.ndarray, edit: dict, gt: GTMesh | None = None) -> np.ndarray:
+    """The GT geometric edit's displacement [N, 3] of any points [N, 3] (run units of the synth:
+    those of mesh.ply and cameras.json), from edit.json (`edit`) and, for `scale_part`, the GT
+    mesh (`load_gt_edit`): points + gt_displacement(points, ...) is where the edit takes them.
+
+    - stretch_above_plane: `stretch_displacement` (defined everywhere);
+    - scale_part: (scale - 1) * (p - center) for the points that belong to the part
+      (`gt_part_membership`: the part of the nearest GT surface point), 0 elsewhere: the part's
+      exact uniform scaling, so a surface near the part (a reconstruction) scales smoothly.
+    At the GT mesh's vertices both are exactly the rendered edit's displacement.
+    """
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    operation = edit.get("operation")
+    if operation in ("stretch_above_plane", "stretch"):
+        return stretch_displacement(points, edit["plane"], edit["scale"], edit["falloff"])
+    if operation == "scale_part":
+        inside = gt_part_membership(points, edit, gt)
+        center = np.asarray(edit["center"], np.float64).reshape(3)
+        out = np.zeros_like(points)
+        out[inside] = (float(edit["scale"]) - 1.0) * (points[inside] - center)
+        return out
+    raise SineError(
+        f"edit.json operation {operation!r} is not a geometric edit "
+        "(stretch_above_plane or scale_part)"
+    )
+
+
+def make_decal(mesh: MeshData, part: int, pattern: str, colors, size: float, axis=None) -> dict:
+    """The decal of `recon.mesh_data.decal_pattern` on part `part`: centred on the part's
+    bounding-box centre (`part_center`, rest positions), `axis` defaulting to DECAL_AXES (stripes:
+    horizontal bands; disc: on the side facing +x, the first camera's; checker: none)."""
+    if pattern not in DECAL_PATTERNS:
+        raise SineError(f"unknown decal {pattern!r}; use one of {', '.join(DECAL_PATTERNS)}")
+    colors = np.asarray(colors, np.float64).reshape(2, 3)
+    if pattern == "checker":
+        axis = None
+    else:
+        axis = np.asarray(DECAL_AXES[pattern] if axis is None else axis, np.float64).reshape(3)
+        if np.linalg.norm(axis) < 1e-12:
+            raise SineError("--edit-decal-axis needs a non-zero direction")
+        axis = (axis / np.linalg.norm(axis)).tolist()
+    return {
+        "pattern": pattern,
+        "colors": colors.tolist(),
+        "size": float(size),
+        "center": part_center(mesh, part).tolist(),
+        "axis": axis,
+    }
+
+
 def texture_edit(
     mesh: MeshData,
     part: int | None = None,
     hue_shift_deg: float = 120.0,
     color=None,
     texture: np.ndarray | None = None,
+    decal: dict | None = None,
 ) -> MeshData:
-    """Recolours part `part` (hue rotation or a solid colour), or swaps every texture image."""
+    """Recolours part `part` (hue rotation, a solid colour, or a `decal`), or swaps every texture
+    image."""
     if texture is not None:
         if not mesh.textures:
             raise SineError(
@@ -268,6 +469,8 @@ def texture_edit(
         return mesh.replace(textures=[np.asarray(texture, np.float32)] * len(mesh.textures))
     if part is None:
         raise SineError("a texture edit needs a part id or a texture image")
+    if decal is not None:
+        return mesh.replace(recolor={"part": int(part), "decal": decal})
     recolor = {
         "part": int(part),
         "hue_shift_deg": float(hue_shift_deg),
@@ -696,7 +899,8 @@ class SynthConfig:
     out: Path = option(Path("synth_out"), "output directory (created; re-running overwrites)")
     mesh: Path | None = option(None, "textured mesh to render (OBJ+MTL+texture, GLB, GLTF, PLY)")
     procedural: str | None = option(
-        None, "built-in procedural object instead of --mesh (toycar, figurine)"
+        None,
+        f"built-in procedural object instead of --mesh ({', '.join(procedural.PROCEDURAL)})",
     )
     views: int = option(36, "number of views on the camera ring(s) (>= 3)")
     width: int = option(320, "image width in pixels")
@@ -732,18 +936,64 @@ class SynthConfig:
     edit: list[str] = option(
         [], "ground-truth edits to render beside the originals", choices=list(EDIT_KINDS)
     )
+    edit_operation: str = option(
+        "stretch",
+        "geometric edit: stretch = stretch the part above --edit-plane along the plane's normal "
+        "(a horizontal plane: vertical; a vertical plane: sideways; any other: tilted); "
+        "scale_part = scale the part --edit-part uniformly by --edit-scale about --edit-pivot, the "
+        "other parts unchanged (a vertex shared with another part moves with the part)",
+        choices=list(GEOMETRIC_OPERATIONS),
+    )
     edit_plane: list[float] | None = option(
         None,
         "geometric edit: stretch the part above the plane NX NY NZ D (run units) along its normal; "
         "if omitted, the object's suggestion (procedural) or the horizontal plane z = 0",
     )
-    edit_scale: float = option(1.5, "geometric edit: stretch factor along the plane normal")
+    edit_scale: float = option(
+        1.5, "geometric edit: stretch factor along the plane normal, or scale_part's factor (> 0)"
+    )
     edit_falloff: float = option(
         0.1, "geometric edit: width (run units) over which the stretch ramps up above the plane"
     )
+    edit_pivot: list[float] | None = option(
+        None,
+        "geometric edit scale_part: the point X Y Z (run units) that stays fixed; if omitted, the "
+        "centre of the part's bounding box",
+    )
     edit_part: int | None = option(
         None,
-        "texture edit: part id to recolour; if omitted, 2 (above) for meshes, the main part of a toy",
+        "part id (parts.json) that scale_part scales and the texture edit paints; if omitted, "
+        "2 (above) for meshes, the object's suggestion for procedural objects",
+    )
+    edit_texture_operation: str = option(
+        "recolor",
+        "texture edit: recolor = rotate the part's hue by --edit-hue (or paint it --edit-color); "
+        "decal = paint the two-colour pattern --edit-decal on the part",
+        choices=list(TEXTURE_OPERATIONS),
+    )
+    edit_decal: str = option(
+        "stripes",
+        "texture edit decal: stripes = bands across --edit-decal-axis; checker = a 3D checker of "
+        "cubes; disc = a disc with a ring, on the part's side that --edit-decal-axis points to "
+        "(all centred on the centre of the part's bounding box, fixed to the surface)",
+        choices=list(DECAL_PATTERNS),
+    )
+    edit_decal_colors: list[float] = option(
+        [1.0, 0.85, 0.1, 0.1, 0.2, 0.8],
+        "texture edit decal: its two colours R G B R G B in [0, 1] (the disc's inside, its ring)",
+        low=0.0,
+        high=1.0,
+    )
+    edit_decal_size: float = option(
+        0.08,
+        "texture edit decal: stripe width, checker cube side or disc radius (run units; the "
+        "object's bounding sphere has radius 0.8)",
+    )
+    edit_decal_axis: list[float] | None = option(
+        None,
+        "texture edit decal: direction X Y Z across the stripes / towards the disc's side; if "
+        "omitted, +z for stripes (horizontal bands), +x for the disc (the side facing the first "
+        "camera, r_000)",
     )
     edit_hue: float = option(120.0, "texture edit: hue rotation in degrees")
     edit_color: list[float] | None = option(
@@ -751,6 +1001,11 @@ class SynthConfig:
     )
     edit_texture: Path | None = option(
         None, "texture edit: replace the mesh's texture image by this image instead"
+    )
+    cameras_from: Path | None = option(
+        None,
+        "the folder of an earlier `sine synth` output: render with its cameras (cameras.json) "
+        "instead of framing the object anew, e.g. another edit of the same capture",
     )
     supersample: int = option(
         3,
@@ -797,6 +1052,40 @@ def _validate(cfg: SynthConfig) -> None:
             raise SineError(f"--{name.replace('_', '-')} takes four numbers NX NY NZ D")
     if cfg.edit_color is not None and len(cfg.edit_color) != 3:
         raise SineError("--edit-color takes three numbers R G B in [0, 1]")
+    if cfg.edit_operation not in GEOMETRIC_OPERATIONS:
+        raise SineError(
+            f"unknown --edit-operation {cfg.edit_operation!r}; "
+            f"use {' or '.join(GEOMETRIC_OPERATIONS)}"
+        )
+    if cfg.edit_texture_operation not in TEXTURE_OPERATIONS:
+        raise SineError(
+            f"unknown --edit-texture-operation {cfg.edit_texture_operation!r}; "
+            f"use {' or '.join(TEXTURE_OPERATIONS)}"
+        )
+    if cfg.edit_decal not in DECAL_PATTERNS:
+        raise SineError(
+            f"unknown --edit-decal {cfg.edit_decal!r}; use one of {', '.join(DECAL_PATTERNS)}"
+        )
+    if not np.isfinite(cfg.edit_scale) or cfg.edit_scale <= 0:
+        raise SineError(f"--edit-scale must be a positive factor (got {cfg.edit_scale})")
+    if cfg.edit_pivot is not None and len(cfg.edit_pivot) != 3:
+        raise SineError("--edit-pivot takes three numbers X Y Z (run units)")
+    colors = cfg.edit_decal_colors
+    if len(colors) != 6 or not all(0.0 <= float(c) <= 1.0 for c in colors):
+        raise SineError("--edit-decal-colors takes six numbers R G B R G B, each in [0, 1]")
+    if not np.isfinite(cfg.edit_decal_size) or cfg.edit_decal_size <= 0:
+        raise SineError(f"--edit-decal-size must be positive (got {cfg.edit_decal_size})")
+    if cfg.edit_decal_axis is not None and (
+        len(cfg.edit_decal_axis) != 3 or np.linalg.norm(cfg.edit_decal_axis) < 1e-12
+    ):
+        raise SineError("--edit-decal-axis takes three numbers X Y Z, not all zero")
+    if cfg.edit_pivot is not None and cfg.edit_operation != "scale_part":
+        raise SineError("--edit-pivot is the fixed point of --edit-operation scale_part only")
+    if cfg.edit_texture is not None and cfg.edit_texture_operation == "decal":
+        raise SineError(
+            "--edit-texture replaces the whole texture image: it cannot be combined with "
+            "--edit-texture-operation decal (choose one)"
+        )
     unknown = [e for e in cfg.edit if e not in EDIT_KINDS]
     if unknown:
         raise SineError(f"unknown edit {unknown[0]!r}; use {' or '.join(EDIT_KINDS)}")
@@ -830,52 +1119,149 @@ def load_source(cfg: SynthConfig) -> tuple[MeshData, Normalisation, dict]:
     return mesh, norm, hints
 
 
+def _edit_part(cfg: SynthConfig, mesh: MeshData, hints: dict) -> int:
+    """--edit-part (or the object's suggestion), checked against the mesh's parts."""
+    part = cfg.edit_part if cfg.edit_part is not None else hints.get("edit_part", 1)
+    if int(part) not in mesh.part_names:
+        raise SineError(
+            f"--edit-part {part} is not a part of this object "
+            f"(parts: {', '.join(f'{k}={v}' for k, v in mesh.part_names.items())})"
+        )
+    return int(part)
+
+
+def _geometric_params(cfg: SynthConfig, mesh: MeshData, hints: dict):
+    """(edited mesh, edit.json) of the geometric edit."""
+    if cfg.edit_operation == "scale_part":
+        part = _edit_part(cfg, mesh, hints)
+        edited, center = scale_part_edit(mesh, part, cfg.edit_scale, cfg.edit_pivot)
+        params = {
+            "kind": "geometric",
+            "operation": "scale_part",
+            "part": part,
+            "part_name": mesh.part_names[part],
+            "scale": float(cfg.edit_scale),
+            "center": center.tolist(),
+            "center_from": "--edit-pivot"
+            if cfg.edit_pivot is not None
+            else "centre of the bounding box of the part's vertices (rest positions)",
+            "part_plane": None if mesh.part_plane is None else mesh.part_plane.tolist(),
+            "formula": "x' = center + scale * (x - center) for the part's points, x' = x "
+            "elsewhere; see recon.synth.gt_displacement",
+            "shared_vertices": "a vertex at the same position as a vertex of the part moves with "
+            "the part (the mesh stays connected; the other part's faces at the seam stretch)",
+            "membership": "a mesh vertex: it or a vertex at its position is on a face of the part "
+            "(with part_plane: on the part's side of the plane, label 2 above, 1 below); any "
+            "other point: the part of the nearest GT surface point, ties to the part "
+            "(recon.synth.gt_part_membership)",
+        }
+    else:
+        plane = cfg.edit_plane if cfg.edit_plane is not None else hints.get("edit_plane")
+        plane = normalised_plane(plane if plane is not None else [0.0, 0.0, 1.0, 0.0])
+        edited = geometric_edit(mesh, plane, cfg.edit_scale, cfg.edit_falloff)
+        params = {
+            "kind": "geometric",
+            "operation": "stretch_above_plane",
+            "plane": plane.tolist(),
+            "plane_convention": "n.x = D with |n| = 1; above: n.x > D (run units)",
+            "scale": float(cfg.edit_scale),
+            "falloff": float(cfg.edit_falloff),
+            "formula": "x' = x + (scale - 1) * G(n.x - D) * n, see recon.synth.stretch_displacement",
+        }
+    moved = np.linalg.norm(edited.vertices - mesh.vertices, axis=1)
+    params.update(
+        units="run units of the synth (mesh.ply, cameras.json; synth.json normalization)",
+        vertices_moved=int((moved > 0).sum()),
+        max_displacement=float(moved.max()),
+        gt_displacement_file=GT_DISPLACEMENT_FILE,
+        gt_displacement_arrays="vertices [W, 3] and faces [F, 3] of the original mesh.ply "
+        "(welded, rest positions), face_parts [F], displacement [W, 3] of each vertex "
+        "(recon.synth.load_gt_edit)",
+    )
+    return edited, params
+
+
+def _texture_params(cfg: SynthConfig, mesh: MeshData, hints: dict):
+    """(edited mesh, edit.json) of the texture edit."""
+    if cfg.edit_texture is not None:
+        from render.io import read_image
+
+        edited = texture_edit(mesh, texture=read_image(cfg.edit_texture))
+        return edited, {
+            "kind": "texture",
+            "operation": "replace_texture",
+            "texture": str(cfg.edit_texture),
+        }
+    part = _edit_part(cfg, mesh, hints)
+    params = {"kind": "texture", "part": part, "part_name": mesh.part_names[part]}
+    if cfg.edit_texture_operation == "decal":
+        colors = [float(c) for c in cfg.edit_decal_colors]
+        decal = make_decal(
+            mesh, part, cfg.edit_decal, [colors[:3], colors[3:]], cfg.edit_decal_size,
+            cfg.edit_decal_axis,
+        )  # fmt: skip
+        edited = texture_edit(mesh, part, decal=decal)
+        params.update(
+            operation="decal",
+            decal=decal,
+            formula="the part's albedo at a rest-space surface point p becomes "
+            "colors[index] where recon.mesh_data.decal_pattern(p, decal) paints (run units)",
+        )
+    else:
+        edited = texture_edit(mesh, part, cfg.edit_hue, cfg.edit_color)
+        params.update(
+            operation="recolor_part", **{k: v for k, v in edited.recolor.items() if k != "part"}
+        )
+    return edited, params
+
+
 def _edited_meshes(
     cfg: SynthConfig, mesh: MeshData, hints: dict
 ) -> list[tuple[str, MeshData, dict]]:
     edits = []
     for kind in dict.fromkeys(cfg.edit):  # unique, in order
         if kind == "geometric":
-            plane = cfg.edit_plane if cfg.edit_plane is not None else hints.get("edit_plane")
-            plane = normalised_plane(plane if plane is not None else [0.0, 0.0, 1.0, 0.0])
-            edited = geometric_edit(mesh, plane, cfg.edit_scale, cfg.edit_falloff)
-            moved = np.linalg.norm(edited.vertices - mesh.vertices, axis=1)
-            params = {
-                "kind": "geometric",
-                "operation": "stretch_above_plane",
-                "plane": plane.tolist(),
-                "plane_convention": "n.x = D with |n| = 1; above: n.x > D (run units)",
-                "scale": float(cfg.edit_scale),
-                "falloff": float(cfg.edit_falloff),
-                "formula": "x' = x + (scale - 1) * G(n.x - D) * n, see recon.synth.stretch_displacement",
-                "vertices_moved": int((moved > 0).sum()),
-                "max_displacement": float(moved.max()),
-            }
+            edited, params = _geometric_params(cfg, mesh, hints)
         else:
-            texture = None
-            if cfg.edit_texture is not None:
-                from render.io import read_image
-
-                texture = read_image(cfg.edit_texture)
-            part = cfg.edit_part if cfg.edit_part is not None else hints.get("edit_part", 1)
-            if texture is None and int(part) not in mesh.part_names:
-                raise SineError(
-                    f"--edit-part {part} is not a part of this object "
-                    f"(parts: {', '.join(f'{k}={v}' for k, v in mesh.part_names.items())})"
-                )
-            edited = texture_edit(mesh, part, cfg.edit_hue, cfg.edit_color, texture)
-            params = {"kind": "texture"}
-            if texture is not None:
-                params.update(operation="replace_texture", texture=str(cfg.edit_texture))
-            else:
-                params.update(
-                    operation="recolor_part",
-                    part=int(part),
-                    part_name=mesh.part_names[int(part)],
-                    **{k: v for k, v in edited.recolor.items() if k != "part"},
-                )
+            edited, params = _texture_params(cfg, mesh, hints)
         edits.append((kind, edited, params))
     return edits
+
+
+def _view_counts(cameras, views, edit_views, params: dict) -> dict:
+    """Per view: the pixels the edit changes (8-bit colour or mask) and, for a part edit, the
+    part's pixels in the edited views (a part on one side of the object is not in every view)."""
+    changed, part_pixels = {}, {}
+    for cam, view, edit_view in zip(cameras, views, edit_views, strict=True):
+        stem = Path(cam.name).stem
+
+        def q(rgb):  # as written to the PNGs
+            return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+        diff = np.any(q(view["rgb"]) != q(edit_view["rgb"]), axis=-1)
+        changed[stem] = int((diff | (view["mask"] != edit_view["mask"])).sum())
+        if "part" in params:
+            part_pixels[stem] = int((edit_view["labels"] == params["part"]).sum())
+    out = {"changed_pixels_per_view": changed}
+    if part_pixels:
+        out["part_pixels_per_view"] = part_pixels
+    return out
+
+
+def reused_cameras(cfg: SynthConfig) -> list[Camera]:
+    """The cameras of the `sine synth` output `cfg.cameras_from` (same count and size)."""
+    path = Path(cfg.cameras_from) / "cameras.json"
+    if not path.is_file():
+        raise SineError(f"--cameras-from {cfg.cameras_from}: no cameras.json there")
+    cameras = load_cameras(path).frames
+    if len(cameras) != cfg.views or any(
+        (c.width, c.height) != (cfg.width, cfg.height) for c in cameras
+    ):
+        raise SineError(
+            f"--cameras-from {cfg.cameras_from} has {len(cameras)} views of "
+            f"{cameras[0].width}x{cameras[0].height}; give the same --views, --width, --height"
+        )
+    return cameras
 
 
 def synthesize(cfg: SynthConfig, progress: bool = True) -> dict:
@@ -886,12 +1272,15 @@ def synthesize(cfg: SynthConfig, progress: bool = True) -> dict:
     edits = _edited_meshes(cfg, mesh, hints)
     t_load = time.perf_counter() - t0
 
-    # One camera set for the original and every edit, framing all of them.
-    every = np.concatenate([mesh.vertices] + [e[1].vertices for e in edits])
-    distance = fit_camera_distance(
-        every, cfg.views, cfg.width, cfg.height, cfg.elevation, cfg.fov, cfg.fill
-    )
-    cameras = ring_cameras(cfg.views, cfg.width, cfg.height, cfg.elevation, distance, cfg.fov)
+    if cfg.cameras_from is not None:
+        cameras = reused_cameras(cfg)
+        distance = float(np.mean([np.linalg.norm(c.center) for c in cameras]))
+    else:  # one camera set for the original and every edit, framing all of them
+        every = np.concatenate([mesh.vertices] + [e[1].vertices for e in edits])
+        distance = fit_camera_distance(
+            every, cfg.views, cfg.width, cfg.height, cfg.elevation, cfg.fov, cfg.fill
+        )
+        cameras = ring_cameras(cfg.views, cfg.width, cfg.height, cfg.elevation, distance, cfg.fov)
     background = make_backdrop(cfg.background, cfg.background_seed, distance)
     out = Path(cfg.out)
 
@@ -935,6 +1324,9 @@ def synthesize(cfg: SynthConfig, progress: bool = True) -> dict:
         )
         edit_dir = out / "edits" / name
         edit_stats = write_views(edit_dir, cameras, edit_views, edited)
+        params = {**params, **_view_counts(cameras, views, edit_views, params)}
+        if name == "geometric":
+            _save_gt_mesh(edit_dir / GT_DISPLACEMENT_FILE, gt_mesh(mesh, edited))
         if cfg.format == "nerf-synthetic":
             write_nerf_synthetic(edit_dir / NERF_SYNTHETIC_DIR, cameras, edit_views)
             edit_stats["nerf_synthetic"] = str(edit_dir / NERF_SYNTHETIC_DIR)
