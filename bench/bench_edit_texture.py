@@ -1,24 +1,46 @@
-"""Texture editing against ground truth: ours, the naive baseline and --no-compositor, per object.
+"""Texture editing against ground truth: a grid of object x texture edit kind x method.
 
     python bench/bench_edit_texture.py --out bench/out/edit_texture [--quick]
-        [--objects toycar figurine spot] [--methods ours naive no_compositor] [--no-features]
+        [--objects toycar figurine spot avocado bob mug chair] [--edits hue stripes one_sided]
+        [--methods ours naive no_compositor template] [--no-features] [--tag T]
     python bench/bench_edit_texture.py --out DIR --memory RUN [--sizes 256 512]
 
-For each object: a synthetic turntable with a ground-truth retexture (`sine synth --edit texture`:
-one part's hue rotated by 120 degrees), `sine recon` (known poses), `sine fit` (defaults) and, unless
+For each object (default: bench_objects.GRID_OBJECTS): a synthetic turntable (DIR/OBJECT/synth,
+with the `hue` GT edit), `sine recon` (known poses), `sine fit` (defaults) and, unless
 --no-features, `sine features` (semantic masks; else the painted region lifted onto the proxy).
-Every method edits from ONE view (aligned case): the target is the ground-truth edited image of
-the training view where the edit changes the most pixels, the region the part's ground-truth
-label in that view. Scored on held-out edited views (every 4th view around the ring, the edited
-view excluded: the far side of the ring sees parts of the part that the target view does not)
-against the ground truth:
-- heldout_psnr: object pixels (GT mask or rendered opacity > 0.5); heldout_psnr_edited: the pixels
-  the GT edit changed; heldout_ssim (whole image);
+One template serves every kind: each other kind's GT is `sine synth --edit texture` into
+DIR/OBJECT/gt_KIND with the base capture's cameras (`cameras_from`; reused when its edit.json
+exists). The texture edit kinds (TEXTURE_KINDS, per-object overrides in KIND_OVERRIDES):
+- hue: the object's suggested part, hue rotated by 120 degrees (the base synth, as before);
+- stripes: a painted pattern, not a plain recolour: two-colour (magenta, cyan) horizontal stripes
+  0.08 wide (a decal) over the suggested part (the chair's thin seat: bands across x);
+- one_sided: a painting on ONE side of the object only: a disc decal (magenta, a cyan ring) on the
+  +y side of the suggested part (toycar, figurine, chair, bob are mirror-symmetric across y = 0:
+  the -y side must stay as it is; on the chair's thin seat the disc, projected along y, is a band
+  over the seat's +y half; avocado: its skin, the cut face is -y); spot faces +y (mirror plane
+  x = 0): on its +x side (the neck's); bob: on its ring (part 1; its part above the middle misses
+  the disc's line); the mug: its handle (part 2, on the +x side only) painted magenta (the mug's
+  mirror plane y = 0 maps the handle onto itself: there, mirroring is no error).
+Every method edits from ONE view (aligned case): the target is the kind's ground-truth edited image
+of the training view where that GT edit changes the most pixels (view K, per kind); the painted
+region (what a user paints in view K): a recolour's part, its GT label in view K; a decal, the
+pixels the GT edit changed in view K dilated by 2 px (the pattern, not the whole part). Edits are
+named METHOD+TAG for hue (earlier results are reused) and KIND_METHOD+TAG otherwise. Scored on
+held-out edited views (every 4th view around the ring, view K excluded: the far side of the ring
+sees parts of the part that view K does not; with few views, e.g. 16, a one-sided disc may be in
+none of them: PSNR edit "-") against the kind's ground truth:
+- heldout_psnr (PSNR obj): object pixels (GT mask or rendered opacity > 0.5);
+  heldout_psnr_edited (PSNR edit): the pixels the GT edit changed; heldout_ssim (whole image);
 - unedited_psnr: the edit vs the template's own rendering where the GT edit did not change the
-  view (on the object): does the rest stay intact?
-Writes DIR/results.json ({"cases": [...]}) and DIR/<object>_sheet.png (rows: held-out views;
-columns: template | each method | ground truth). `--quick`: toycar only, ours + naive, fewer steps
-(--objects / --methods still choose).
+  view (on the object): does the rest stay intact? (one_sided: the unpainted -y side counts here;
+  a mean of per-view dB: a leak seen in one view only weighs little);
+- mirrored: the edit's verdict on mirroring view K's painting across the proxy's mirror plane
+  (metrics.json "mirror": mirrored, by, agreement): a one-sided painting must not be mirrored.
+Writes DIR/results.json ({"cases": [...]}; one case per object x kind x method), per case
+DIR/<object>_<kind><tag>_sheet.png (rows: held-out views; columns: template | each method |
+ground truth), and prints one markdown table (object | edit | method | PSNR obj | PSNR edit |
+SSIM | unedited | mirrored | s). `--quick`: toycar and mug, hue and one_sided, ours + naive,
+300 steps (--objects / --edits / --methods / --iterations still choose).
 
 `--reference OBJECT`: the unaligned case: each object's part (GT label in the editing view as the
 region) takes the look of a render of OBJECT (e.g. avocado) given as `--reference`; writes the
@@ -50,7 +72,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_objects import case_name, synth_source  # noqa: E402
+from bench_objects import GRID_OBJECTS, case_name, synth_source  # noqa: E402
 
 VARIANTS = {
     "ours": {},
@@ -58,6 +80,55 @@ VARIANTS = {
     "no_compositor": {"compositor": False},
     "template": None,  # no edit at all: what the template scores (context for the others)
 }
+
+
+# the grid's GT texture edit kinds: `recon.synth.SynthConfig` options (the part: the object's
+# suggestion unless given); `hue` is the base synth's own edit (work/synth)
+DECAL_COLORS = [0.85, 0.1, 0.65, 0.1, 0.8, 0.85]  # magenta, cyan: unlike every object's colours
+DISC = {"edit_texture_operation": "decal", "edit_decal": "disc", "edit_decal_colors": DECAL_COLORS}
+TEXTURE_KINDS = {
+    # the object's suggested part, hue rotated by 120 degrees
+    "hue": {},
+    # a painted pattern: two-colour stripes (horizontal bands, 0.08 wide) over the suggested part
+    "stripes": {
+        "edit_texture_operation": "decal",
+        "edit_decal": "stripes",
+        "edit_decal_colors": DECAL_COLORS,
+    },
+    # a painting on one side only: a disc (radius 0.08, a ring to 0.12) on the +y side of the
+    # suggested part; its mirror image across y = 0 stays unpainted
+    "one_sided": {**DISC, "edit_decal_axis": [0.0, 1.0, 0.0]},
+}
+# per-object replacements of a kind's options (where the kind's own miss the point)
+KIND_OVERRIDES = {
+    # the chair's seat is thinner than a band: horizontal stripes would paint it one colour;
+    # bands across x instead (across the seat's planks)
+    ("chair", "stripes"): {**TEXTURE_KINDS["stripes"], "edit_decal_axis": [1.0, 0.0, 0.0]},
+    # spot faces +y (mirror plane x = 0): the disc on its +x side (the neck's side)
+    ("spot", "one_sided"): {**DISC, "edit_decal_axis": [1.0, 0.0, 0.0]},
+    # bob's part above the middle (2) is the head and the ring's top, not on the disc's line:
+    # the ring below (1), on its +y side
+    ("bob", "one_sided"): {**DISC, "edit_decal_axis": [0.0, 1.0, 0.0], "edit_part": 1},
+    # the mug: its one-sided part is the handle (+x side only), painted one colour (magenta; its
+    # `hue` kind already rotates the handle's hue)
+    ("mug", "one_sided"): {"edit_part": 2, "edit_color": [0.85, 0.1, 0.65]},
+}
+QUICK = {"objects": ["toycar", "mug"], "edits": ["hue", "one_sided"], "methods": ["ours", "naive"]}
+
+
+def kind_options(obj: str, kind: str) -> dict:
+    """The `SynthConfig` texture-edit options of GT edit `kind` on object `obj` (its case name)."""
+    return KIND_OVERRIDES.get((obj, kind), TEXTURE_KINDS[kind])
+
+
+def edit_name(kind: str, method: str, tag: str = "") -> str:
+    """The edit's name in the shared run: METHOD+TAG for hue (earlier results), else KIND_..."""
+    return f"{method}{tag}" if kind == "hue" else f"{kind}_{method}{tag}"
+
+
+def gt_dir(syn: Path) -> Path:
+    """The texture GT edit's folder in the synth folder `syn`."""
+    return syn / "edits" / "texture"
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -76,7 +147,7 @@ def prepare_object(
     from recon.synth import SynthConfig, synthesize
 
     syn, run = work / "synth", RunDir(work / "run")
-    if not (syn / "edits" / "texture" / "edit.json").is_file():
+    if not (gt_dir(syn) / "edit.json").is_file():
         source = synth_source(name)
         synthesize(
             SynthConfig(out=syn, views=views, width=size, height=size, edit=["texture"], **source),
@@ -93,12 +164,39 @@ def prepare_object(
     return syn, run, fit
 
 
+def gt_edit(source: str, work: Path, kind: str, size: int, views: int) -> Path:
+    """The synth folder of the object's GT texture edit `kind`: work/synth for hue, else
+    work/gt_KIND rendered with the base capture's cameras (so one template serves every kind;
+    reused when its edit.json exists)."""
+    from recon.synth import SynthConfig, synthesize
+
+    base = work / "synth"
+    if kind == "hue":
+        return base
+    syn = work / f"gt_{kind}"
+    if not (gt_dir(syn) / "edit.json").is_file():
+        synthesize(
+            SynthConfig(
+                out=syn,
+                views=views,
+                width=size,
+                height=size,
+                edit=["texture"],
+                cameras_from=base,
+                **kind_options(case_name(source), kind),
+                **synth_source(source),
+            ),
+            progress=False,
+        )
+    return syn
+
+
 def changed_pixels(syn: Path, name: str) -> np.ndarray:
-    """[H, W] bool: pixels the GT texture edit changed in view `name`."""
+    """[H, W] bool: pixels the GT texture edit of synth folder `syn` changed in view `name`."""
     from render.io import read_image
 
     orig = read_image(syn / "images" / name)
-    edited = read_image(syn / "edits" / "texture" / "images" / name)
+    edited = read_image(gt_dir(syn) / "images" / name)
     return np.abs(orig - edited).max(axis=-1) > 0.02
 
 
@@ -112,16 +210,18 @@ def pick_edit_view(run, syn: Path) -> int:
     return max(counts)[1]
 
 
-def open_object(object_dir: Path, threads: int = 0):
-    """(run, synth folder, cameras, edit view K) of a finished DIR/OBJECT folder of this bench,
-    for the diagnostics that read it (`threads`: torch threads, 0 leaves the default)."""
+def open_object(object_dir: Path, threads: int = 0, kind: str = "hue"):
+    """(run, the kind's synth folder, cameras, edit view K) of a finished DIR/OBJECT folder of
+    this bench, for the diagnostics that read it (`threads`: torch threads, 0 leaves the
+    default)."""
     import torch
 
     from recon.rundir import RunDir
 
     if threads:
         torch.set_num_threads(threads)
-    run, syn = RunDir(object_dir / "run"), object_dir / "synth"
+    run = RunDir(object_dir / "run")
+    syn = object_dir / ("synth" if kind == "hue" else f"gt_{kind}")
     return run, syn, run.load_cameras().frames, pick_edit_view(run, syn)
 
 
@@ -134,15 +234,28 @@ def part_label(syn: Path, name: str) -> np.ndarray:
     """[H, W] bool: the GT edit's part in the view of image `name` (its GT labels)."""
     from render.io import read_json, read_label_map
 
-    part = read_json(syn / "edits" / "texture" / "edit.json")["part"]
+    part = read_json(gt_dir(syn) / "edit.json")["part"]
     return read_label_map(syn / "labels" / Path(name).with_suffix(".png").name) == part
 
 
-def painted_region(syn: Path, cam, out: Path) -> Path:
-    """The edited part's GT labels in the view, as a white-on-black PNG (the user's painting)."""
-    from render.io import write_mask
+DECAL_REGION_DILATE = 2  # px: a decal's painted region, the pixels its GT changed grown by this
 
-    write_mask(out, part_label(syn, cam.name))
+
+def painted_region(syn: Path, cam, out: Path) -> Path:
+    """What the user paints in the view, as a white-on-black PNG: a recolour's part (its GT
+    labels); a decal's pattern (the pixels the GT edit changed, dilated by DECAL_REGION_DILATE
+    px, a disc of that radius)."""
+    import cv2
+
+    from render.io import read_json, write_mask
+
+    if read_json(gt_dir(syn) / "edit.json").get("operation") == "decal":
+        r = DECAL_REGION_DILATE
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        changed = changed_pixels(syn, cam.name).astype(np.uint8)
+        write_mask(out, cv2.dilate(changed, disc) > 0)
+    else:
+        write_mask(out, part_label(syn, cam.name))
     return out
 
 
@@ -153,10 +266,11 @@ def score(run, syn: Path, scene, template, views: list[int]) -> tuple[dict, list
 
     frames = run.load_cameras().frames
     rows, per = [], {"psnr": [], "edited": [], "ssim": [], "unedited": []}
+    pooled = []  # every held-out view's unedited pixels' squared errors, for one pooled PSNR
     for k in views:
         cam = frames[k]
-        gt = read_image(syn / "edits" / "texture" / "images" / cam.name)
-        gt_mask = read_mask(syn / "edits" / "texture" / "masks" / cam.name)
+        gt = read_image(gt_dir(syn) / "images" / cam.name)
+        gt_mask = read_mask(gt_dir(syn) / "masks" / cam.name)
         changed = changed_pixels(syn, cam.name)
         out = scene.render_view(cam)
         tmpl = np.clip(template.render_view(cam)["rgb"], 0, 1)
@@ -169,6 +283,7 @@ def score(run, syn: Path, scene, template, views: list[int]) -> tuple[dict, list
         unchanged = gt_mask & ~changed
         if unchanged.any():
             per["unedited"].append(psnr(pred[unchanged], tmpl[unchanged]))
+            pooled.append(((pred[unchanged] - tmpl[unchanged]) ** 2).ravel())
         rows.append((tmpl, pred, gt))
     mean = lambda xs: float(np.mean(xs)) if xs else None  # noqa: E731
     metrics = {
@@ -176,6 +291,11 @@ def score(run, syn: Path, scene, template, views: list[int]) -> tuple[dict, list
         "heldout_psnr_edited": mean(per["edited"]),
         "heldout_ssim": mean(per["ssim"]),
         "unedited_psnr": mean(per["unedited"]),
+        # one PSNR over every view's unedited pixels: a leak seen in one view counts fully (the
+        # mean of per-view dB above lets the clean views outweigh it)
+        "unedited_psnr_pooled": (
+            float(10 * np.log10(1 / max(np.concatenate(pooled).mean(), 1e-12))) if pooled else None
+        ),
         "heldout_views": len(views),
     }
     return metrics, rows
@@ -408,14 +528,24 @@ def main() -> int:
     ap.add_argument(
         "--quick",
         action="store_true",
-        help="toycar only, fewer steps, ours + naive (unless --objects / --methods are given)",
+        help=f"{' and '.join(QUICK['objects'])}, {' and '.join(QUICK['edits'])}, "
+        f"{' + '.join(QUICK['methods'])}, 300 steps (unless --objects / --edits / --methods / "
+        "--iterations are given)",
     )
     ap.add_argument(
         "--objects",
         nargs="+",
         default=None,
-        help="default: toycar figurine spot; also avocado, or any mesh file with a UV texture "
-        "(OBJ/GLB/GLTF; its part above the middle plane is recoloured), named by its stem",
+        help=f"default: {' '.join(GRID_OBJECTS)} (--reference: toycar figurine spot); or any "
+        "mesh file (OBJ/GLB/GLTF/PLY; its part above the middle plane is the part edited), named "
+        "by its stem",
+    )
+    ap.add_argument(
+        "--edits",
+        nargs="+",
+        default=None,
+        choices=list(TEXTURE_KINDS),
+        help=f"GT texture edit kinds (default: {' '.join(TEXTURE_KINDS)})",
     )
     ap.add_argument(
         "--methods",
@@ -472,30 +602,31 @@ def main() -> int:
         memory_bench(args.memory, args.sizes, args.out)
         return 0
     if args.quick:
-        args.objects = args.objects or ["toycar"]
-        args.methods = args.methods or ["ours", "naive"]
+        args.objects = args.objects or list(QUICK["objects"])
+        args.edits = args.edits or list(QUICK["edits"])
+        args.methods = args.methods or list(QUICK["methods"])
         args.iterations = args.iterations or 300
-    args.objects = args.objects or ["toycar", "figurine", "spot"]
+    args.edits = args.edits or list(TEXTURE_KINDS)
     args.methods = args.methods or ["ours", "naive", "no_compositor"]
     if args.reference:
         from render.io import write_json
 
-        cases = [unaligned(args, obj, args.reference) for obj in args.objects]
+        objects = args.objects or ["toycar", "figurine", "spot"]
+        cases = [unaligned(args, obj, args.reference) for obj in objects]
         write_json(args.out / f"reference{args.tag}.json", {"cases": cases})
         return 0
 
-    import dataclasses
-
+    args.objects = args.objects or list(GRID_OBJECTS)
     from edit.scene import load_scene
-    from edit.texture_edit import TextureEditConfig, run_texture_edit
-    from render.io import write_image, write_json
+    from render.io import write_json
 
+    options = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in args.set)}
     cases = []
     for source in args.objects:
         obj = case_name(source)
         t0 = time.perf_counter()
         work = args.out / obj
-        syn, run, fit = prepare_object(
+        _, run, fit = prepare_object(
             source,
             work,
             args.size,
@@ -509,68 +640,110 @@ def main() -> int:
             f"prepared in {time.perf_counter() - t0:.0f} s",
             flush=True,
         )
-        k = pick_edit_view(run, syn)
-        views = heldout_views(len(run.load_cameras().frames), k)
         template = load_scene(run.root)
-        cam = run.load_cameras().frames[k]
-        target = syn / "edits" / "texture" / "images" / cam.name
-        region = painted_region(syn, cam, work / "region.png")
-        sheets = None
-        for method in args.methods:
-            options = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in args.set)}
-            cfg = TextureEditConfig(previews=0, threads=args.threads, **options)
-            cfg = dataclasses.replace(cfg, **(VARIANTS[method] or {}))
-            if args.iterations:
-                cfg.iterations = args.iterations
-            t1 = time.perf_counter()
-            name = method + args.tag
-            if method == "template":
-                m, scene = {}, template
-            else:
-                m = run_texture_edit(run.root, k, target, name, cfg, region=region, progress=False)
-                scene = load_scene(run.root, edit=name)
-            seconds = m.get("total_seconds", time.perf_counter() - t1)
-            metrics, rows = score(run, syn, scene, template, views)
-            case = {
-                "object": obj,
-                "method": method,
-                "options": options,
-                **metrics,
-                "seconds": float(seconds),
-                "edit_view": k,
-                "edited_view_psnr_region": m.get("edited_view_psnr_region"),
-                "mask_source": m.get("mask_source"),
-                "iterations": m.get("iterations"),
-            }
-            cases.append(case)
-            print(json.dumps(case), flush=True)
-            sheets = [[r[0]] for r in rows] if sheets is None else sheets
-            for row, r in zip(sheets, rows, strict=True):
-                row.append(r[1])
-        if sheets:
-            picked = np.linspace(0, len(rows) - 1, min(4, len(rows))).astype(int)
-            grid = np.concatenate(
-                [np.concatenate(sheets[i] + [rows[i][2]], axis=1) for i in picked], axis=0
+        for kind in args.edits:
+            syn = gt_edit(source, work, kind, args.size, args.views)
+            cases += edit_case(args, obj, kind, syn, work, run, template, options)
+            write_json(
+                args.out / f"results{args.tag}.json",
+                {"cases": cases, "columns": ["template", *args.methods, "ground truth"]},
             )
-            write_image(args.out / f"{obj}{args.tag}_sheet.png", grid)
-        write_json(
-            args.out / f"results{args.tag}.json",
-            {"cases": cases, "columns": ["template", *args.methods, "ground truth"]},
-        )
-
     print()
-    print(
-        f"{'object':10s} {'method':14s} {'PSNR obj':>9s} {'PSNR edit':>10s} {'SSIM':>6s} "
-        f"{'unedited':>9s} {'seconds':>8s}"
+    print_table(cases)
+    return 0
+
+
+def edit_case(args, obj: str, kind: str, syn: Path, work: Path, run, template, options: dict):
+    """Every method on GT texture edit `kind` (synth folder `syn`) of object `obj` (folder
+    `work`) -> its cases; writes the contact sheet DIR/<obj>_<kind><tag>_sheet.png."""
+    import dataclasses
+
+    from edit.scene import load_scene
+    from edit.texture_edit import TextureEditConfig, run_texture_edit
+    from render.io import read_mask, write_image
+
+    frames = run.load_cameras().frames
+    k = pick_edit_view(run, syn)
+    cam = frames[k]
+    if not changed_pixels(syn, cam.name).any():
+        print(f"[{obj}] {kind}: the GT edit changes no training view, skipped", flush=True)
+        return []
+    views = heldout_views(len(frames), k)
+    target = gt_dir(syn) / "images" / cam.name
+    region = painted_region(
+        syn, cam, work / ("region.png" if kind == "hue" else f"region_{kind}.png")
     )
+    cases, columns, rows = [], None, []
+    for method in args.methods:
+        cfg = TextureEditConfig(previews=0, threads=args.threads, **options)
+        cfg = dataclasses.replace(cfg, **(VARIANTS[method] or {}))
+        if args.iterations:
+            cfg.iterations = args.iterations
+        t1 = time.perf_counter()
+        name = edit_name(kind, method, args.tag)
+        if method == "template":
+            m, scene = {}, template
+        else:
+            m = run_texture_edit(run.root, k, target, name, cfg, region=region, progress=False)
+            scene = load_scene(run.root, edit=name)
+        seconds = m.get("total_seconds", time.perf_counter() - t1)
+        metrics, rows = score(run, syn, scene, template, views)
+        case = {
+            "object": obj,
+            "edit": kind,
+            "method": method,
+            "options": options,
+            **metrics,
+            "mirrored": m.get("mirror"),
+            "seconds": float(seconds),
+            "edit_view": k,
+            "region_pixels": int(read_mask(region).sum()),
+            "edited_view_psnr_region": m.get("edited_view_psnr_region"),
+            "mask_source": m.get("mask_source"),
+            "iterations": m.get("iterations"),
+        }
+        cases.append(case)
+        print(json.dumps(case), flush=True)
+        columns = [[r[0]] for r in rows] if columns is None else columns  # the template
+        for column, r in zip(columns, rows, strict=True):
+            column.append(r[1])
+    if columns:
+        picked = np.linspace(0, len(rows) - 1, min(4, len(rows))).astype(int)
+        sheet = np.concatenate(
+            [np.concatenate(columns[i] + [rows[i][2]], axis=1) for i in picked], axis=0
+        )
+        write_image(args.out / f"{obj}_{kind}{args.tag}_sheet.png", sheet)
+    return cases
+
+
+def mirror_cell(verdict: dict | None) -> str:
+    """The table's `mirrored` cell: yes / no (the masks' agreement with the mirrored painting)."""
+    if not verdict:
+        return "-"
+    cell = "yes" if verdict.get("mirrored") else "no"
+    agreement = verdict.get("agreement")
+    if agreement is not None and np.isfinite(agreement):
+        cell += f" ({agreement:.2f})"
+    elif verdict.get("by") != "auto" or verdict.get("why"):
+        cell += f" ({verdict.get('why') or verdict.get('by')})"
+    return cell
+
+
+def print_table(cases: list[dict]) -> None:
+    """One markdown table row per case (object x edit kind x method)."""
     fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
+    print(
+        "| object | edit | method | PSNR obj | PSNR edit | SSIM | unedited | unedited pooled "
+        "| mirrored | s |"
+    )
+    print("|---|---|---|---:|---:|---:|---:|---:|---|---:|")
     for c in cases:
         print(
-            f"{c['object']:10s} {c['method']:14s} {fmt(c['heldout_psnr']):>9s} "
-            f"{fmt(c['heldout_psnr_edited']):>10s} {c['heldout_ssim']:6.3f} "
-            f"{fmt(c['unedited_psnr']):>9s} {c['seconds']:8.0f}"
+            f"| {c['object']} | {c['edit']} | {c['method']} | {fmt(c['heldout_psnr'])} | "
+            f"{fmt(c['heldout_psnr_edited'])} | {c['heldout_ssim']:.3f} | "
+            f"{fmt(c['unedited_psnr'])} | {fmt(c.get('unedited_psnr_pooled'))} | "
+            f"{mirror_cell(c['mirrored'])} | {c['seconds']:.0f} |"
         )
-    return 0
 
 
 if __name__ == "__main__":
