@@ -54,6 +54,9 @@ def run(args: argparse.Namespace) -> int:
 
     if args.out.suffix.lower() not in MESH_SUFFIXES:
         raise SineError(f"--out {args.out}: use a .ply, .glb or .obj file name")
+    from recon.rundir import RunDir
+
+    RunDir(args.run).refuse_output_inside(args.out)
     from edit.scene import load_scene
 
     scene = load_scene(args.run, args.edit, args.strength, args.device)

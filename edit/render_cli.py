@@ -6,7 +6,7 @@ import argparse
 from dataclasses import dataclass
 from pathlib import Path
 
-from render.configs import add_options, from_args, option
+from render.configs import add_options, from_args, option, validate
 from render.errors import SineError
 
 NAME = "render"
@@ -46,7 +46,7 @@ class RenderConfig:
         "template's `sine fit --supersample`)",
         low=1,
     )
-    chunk: int = option(16384, "rays rendered at once (lower it if memory is short)")
+    chunk: int = option(16384, "rays rendered at once (lower it if memory is short)", low=1)
     device: str = option("auto", "torch device: auto, cpu or cuda", choices=["auto", "cpu", "cuda"])
     threads: int = option(0, "torch CPU threads (0: torch's default)")
 
@@ -104,7 +104,12 @@ def run(args: argparse.Namespace) -> int:
     from render.device import torch_threads
     from render.frames import render_frames
 
-    cfg = from_args(RenderConfig, args)
+    from recon.rundir import RunDir
+    from render.io import require_directory
+
+    cfg = validate(from_args(RenderConfig, args))
+    require_directory(args.out)
+    RunDir(args.run).refuse_output_inside(args.out)
     if cfg.compare and args.edit is None:
         raise SineError("--compare shows template | edit: give --edit NAME")
     if cfg.features and args.edit is not None:

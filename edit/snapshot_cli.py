@@ -163,6 +163,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from recon.rundir import RunDir
+
+    RunDir(args.run).refuse_output_inside(args.out)
     v = snapshot(args.run, args.view, args.out, from_args(ViewSourceConfig, args))
     if v.note:
         print(f"snapshot: {v.note}")

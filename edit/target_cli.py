@@ -287,6 +287,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.out.suffix.lower() != ".png":
         raise SineError(f"--out {args.out} must be a .png (the target keeps its alpha)")
+    RunDir(args.run).refuse_output_inside(args.out)
     chosen_operation(args)  # option errors before the (slow) rendering
     _, camera = pick_view(RunDir(args.run).load_cameras().frames, args.view)
     regions = load_regions(args, camera.width, camera.height)

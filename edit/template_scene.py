@@ -13,7 +13,6 @@ import numpy as np
 import torch
 
 from recon.rundir import RunDir
-from render.errors import SineError
 from render.mesh_export import surface_colors
 from render.sampler import vertex_normals
 
@@ -88,15 +87,10 @@ class TemplateScene(Scene):
 
     def mesh(self) -> tuple[np.ndarray, np.ndarray]:
         if self._mesh is None:
-            import open3d as o3d
-
             from recon.fit import template_proxy
 
             self.run.require("proxy_mesh")
-            proxy = template_proxy(self.run)  # the one the template was fitted around
-            m = o3d.io.read_triangle_mesh(str(proxy))
-            if len(m.triangles) == 0:
-                raise SineError(f"{proxy} has no triangles; re-run `sine recon`")
+            m = self.run.read_proxy(template_proxy(self.run))  # the one the template was fitted around
             self._mesh = (np.asarray(m.vertices).copy(), np.asarray(m.triangles).copy())
         return self._mesh
 

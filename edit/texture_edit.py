@@ -752,6 +752,10 @@ def run_texture_edit(
     validate(cfg)
     if target is None and reference is None:
         raise SineError("a texture edit needs --target (view K repainted) or --reference (a photo)")
+    if target is not None and reference is not None:
+        raise SineError(
+            "give --target (view K repainted) or --reference (a photo of another object), not both"
+        )
     if cfg.method == "naive" and target is None:
         raise SineError("--method naive needs --target (it fits view K's pixels)")
     run = RunDir(run_dir)

@@ -56,7 +56,6 @@ def edit_view_index(run, edit: str | None, frames) -> int | None:
 
 def viewer_scene(run_dir, edit=None, strength=1.0, colors=True, device="auto"):
     """The `ViewerScene` of a run (and edit): meshes, frustums, view direction."""
-    import open3d as o3d
 
     from edit.scene import load_scene
     from recon.rundir import RunDir
@@ -71,7 +70,7 @@ def viewer_scene(run_dir, edit=None, strength=1.0, colors=True, device="auto"):
         from recon.fit import template_proxy
 
         run.require("proxy_mesh")
-        m = o3d.io.read_triangle_mesh(str(template_proxy(run)))
+        m = run.read_proxy(template_proxy(run))
         template_mesh = (np.asarray(m.vertices), np.asarray(m.triangles), None)
     edited_mesh = None
     if edit is not None:

@@ -601,12 +601,8 @@ def make_sampler(
     (`band_at_round`, with `stereo`)."""
     if cfg.sampler == "uniform":
         return UniformSampler(cfg.uniform_coarse, cfg.importance_samples)
-    import open3d as o3d
-
     proxy = proxy or template_proxy(run)
-    mesh = o3d.io.read_triangle_mesh(str(proxy))
-    if len(mesh.triangles) == 0:
-        raise SineError(f"{proxy} has no triangles; re-run `sine recon`")
+    mesh = run.read_proxy(proxy)
     width = cfg.band_width
     if done is not None:
         arrays = (np.asarray(mesh.vertices), np.asarray(mesh.triangles))

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import hashlib
 import re
+import shutil
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -170,8 +171,20 @@ def ingest_capture(capture: Path, run: RunDir, cfg: IngestConfig | None = None) 
             "transforms.json, a COLMAP model folder, a Middlebury or NeuS folder"
         )
     capture = capture.resolve()
+    root = run.root.resolve()
+    if root == capture or root in capture.parents or capture in root.parents:
+        raise SineError(
+            f"--out {run.root} and the capture {capture} overlap: write the run to a folder "
+            "outside the capture (inputs are never modified)"
+        )
+    new_run = not run.root.exists()
     with lock_folder(run.root, f"run {run.root}"):
-        return _ingest(capture, run, cfg, t0)
+        try:
+            return _ingest(capture, run, cfg, t0)
+        except SineError:
+            if new_run:  # a capture refused half-way leaves no run behind
+                shutil.rmtree(run.root, ignore_errors=True)
+            raise
 
 
 def _ingest(capture: Path, run: RunDir, cfg: IngestConfig, t0: float) -> dict:
@@ -180,6 +193,7 @@ def _ingest(capture: Path, run: RunDir, cfg: IngestConfig, t0: float) -> dict:
     previous = _previous(run, source, config)
     if previous is not None and not cfg.force:
         return {**summarize(previous, run), "skipped": True}
+    _refuse_another_capture(run, source, cfg.force)
 
     fmt = detect_format(capture) if cfg.format == "auto" else cfg.format
     if fmt not in READERS:
@@ -794,6 +808,22 @@ def _config_key(cfg: IngestConfig) -> dict:
     if cfg.masks is not None:
         config["masks"] = str(Path(cfg.masks).resolve())
     return config
+
+
+def _refuse_another_capture(run: RunDir, source: str, force: bool) -> None:
+    """A SineError when `run` already holds another capture (its own images, cameras, maybe a
+    template and edits), unless --force replaces it."""
+    if force or not run.captures.is_file():
+        return
+    try:
+        old = read_json(run.captures).get("source")
+    except SineError:
+        return  # an unreadable record: ingest again
+    if old is not None and old != source:
+        raise SineError(
+            f"{run.root} already holds another capture ({old}); write this one to a new --out, "
+            "or give --force to replace it (its template and edits are then redone)"
+        )
 
 
 def _previous(run: RunDir, source: str, config: dict) -> dict | None:

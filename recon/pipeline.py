@@ -11,6 +11,7 @@ after it. The per-stage results become `recon_report.json`.
 from __future__ import annotations
 
 import dataclasses
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -816,17 +817,23 @@ def run_recon(capture: Path | None, run: RunDir, cfg: ReconConfig, ingest_cfg=No
     validate(cfg)
     ingest_cfg = validate(ingest_cfg or IngestConfig())
     require_directory(run.root, "--out")
+    new_run = not run.root.exists()
     with lock_folder(run.root, f"run {run.root}"):
-        return _recon(capture, run, cfg, ingest_cfg)
+        return _recon(capture, run, cfg, ingest_cfg, new_run)
 
 
-def _recon(capture: Path | None, run: RunDir, cfg: ReconConfig, ingest_cfg) -> dict:
+def _recon(capture: Path | None, run: RunDir, cfg: ReconConfig, ingest_cfg, new_run) -> dict:
     from recon.ingest import ingest_capture
 
     pipe = Pipeline(run, cfg, force=ingest_cfg.force, ignore_poses=ingest_cfg.ignore_poses)
     if capture is not None:
         t0 = time.perf_counter()
-        summary = ingest_capture(capture, run, ingest_cfg)
+        try:
+            summary = ingest_capture(capture, run, ingest_cfg)
+        except SineError:
+            if new_run:  # a capture refused half-way leaves no run behind
+                shutil.rmtree(run.root, ignore_errors=True)
+            raise
         seconds = time.perf_counter() - t0
         if not summary.get("skipped") or not pipe._done("ingest"):
             pipe._record("ingest", {"total_views": summary["views"]}, seconds)

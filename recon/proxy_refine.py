@@ -389,7 +389,6 @@ def refine_run(
     """`refine_proxy` on a run: its training views (masks when every one has a mask), its
     proxy (`proxy`, default proxy_mesh.ply; `old_ious` its silhouette IoUs when known) and
     proxy settings -> (mesh, stats). Writes nothing."""
-    import open3d as o3d
 
     from render.io import read_mask
 
@@ -403,10 +402,7 @@ def refine_run(
             c if m.shape == (c.height, c.width) else c.resized(m.shape[1], m.shape[0])
             for c, m in zip(cams, masks, strict=True)
         ]
-    proxy = proxy or run.proxy_mesh
-    if not proxy.is_file():
-        raise SineError(f"{proxy} not found; run `sine recon` first")
-    old = o3d.io.read_triangle_mesh(str(proxy))
+    old = run.read_proxy(proxy)
     params = run_proxy_params(run)
     return refine_proxy(
         field,

@@ -14,7 +14,7 @@ from pathlib import Path
 from render.cameras import CameraSet, load_cameras, save_cameras
 from render.configs import to_dict
 from render.errors import SineError
-from render.io import read_json, read_yaml, write_json, write_yaml
+from render.io import read_json, read_triangle_mesh, read_yaml, write_json, write_yaml
 
 
 @dataclass(frozen=True)
@@ -109,6 +109,32 @@ class RunDir:
         if what == "proxy_mesh" and not self.proxy_mesh.is_file():
             raise SineError(f"{self.root} has no proxy_mesh.ply yet; run `sine recon` first")
         return self
+
+    def read_proxy(self, path: Path | None = None):
+        """The Open3D proxy mesh at `path` (default: the run's proxy_mesh.ply), refused when
+        missing or damaged, with the command that makes it again."""
+        path = Path(path or self.proxy_mesh)
+        rebuild = (
+            f"`sine fit {self.root} --force`"
+            if path.parent == self.template
+            else f"`sine recon CAPTURE --out {self.root} --force`"
+        )
+        return read_triangle_mesh(path, rebuild)
+
+    def refuse_output_inside(self, out: Path, option: str = "--out") -> None:
+        """A SineError when `out` would write over what the run is made of (its images, masks,
+        cameras, proxy, template, features or edits): outputs go elsewhere."""
+        out, root = Path(out).resolve(), self.root.resolve()
+        if out == root or root not in out.parents:
+            if out == root:
+                raise SineError(f"{option} {out} is the run directory itself: give another path")
+            return
+        first = out.relative_to(root).parts[0]
+        managed = {"images", "masks", "depth", "template", "features", "edits", "sfm", "labels"}
+        if first in managed or (len(out.relative_to(root).parts) == 1 and out.exists()):
+            raise SineError(
+                f"{option} {out} would overwrite the run's own {first}: write it elsewhere"
+            )
 
     def load_cameras(self) -> CameraSet:
         self.require("cameras")

@@ -66,6 +66,8 @@ def atomic_path(path: str | os.PathLike):
     The file gets the mode a plain `open()` would give it (0644 under the usual umask 0022).
     A full disk or a folder that cannot be written is a SineError naming `path`."""
     path = Path(path)
+    if path.is_dir():
+        raise SineError(f"{path} is a folder: give the name of a file to write")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
@@ -225,10 +227,17 @@ def contact_sheet(tiles: list[np.ndarray], columns: int, fill: float = 1.0) -> n
 
 def save_torch(path: str | os.PathLike, obj: Any) -> None:
     """torch.save, atomically; `obj` should hold only tensors and plain values (see load_torch)."""
+    import shutil
+
     import torch
 
     with atomic_path(path) as tmp:
-        torch.save(obj, tmp)
+        try:
+            torch.save(obj, tmp)
+        except RuntimeError as exc:  # torch's writer reports a failed write this way
+            if shutil.disk_usage(Path(tmp).parent).free < (64 << 20):
+                raise write_error(path, OSError(errno.ENOSPC, "No space left on device")) from None
+            raise SineError(f"cannot write {path} ({str(exc).splitlines()[0]})") from None
 
 
 TORCH_READ_ERRORS = (RuntimeError, OSError, EOFError, ValueError, pickle.UnpicklingError)
@@ -262,6 +271,43 @@ def load_torch(path: str | os.PathLike, rebuild: str | None = None) -> Any:
     except TORCH_READ_ERRORS as exc:
         why = torch_read_problem(exc)
         raise SineError(f"cannot read {path}: {why}; make it again with {rebuild}") from None
+
+
+def read_triangle_mesh(path: str | os.PathLike, rebuild: str):
+    """An Open3D triangle mesh from a file, refused (a SineError naming `rebuild`, the command
+    that makes it again) when it is missing, has no triangles or is truncated: Open3D only
+    prints a warning for a PLY cut short and returns what it read, so the counts in the PLY's
+    header are checked."""
+    import open3d as o3d
+
+    path = Path(path)
+    if not path.is_file():
+        raise SineError(f"{path} does not exist; make it with {rebuild}")
+    mesh = o3d.io.read_triangle_mesh(str(path))
+    vertices, faces = _ply_counts(path)
+    complete = vertices is None or (
+        len(mesh.vertices) == vertices and len(mesh.triangles) >= faces
+    )
+    if len(mesh.triangles) == 0 or not complete:
+        raise SineError(
+            f"cannot read {path}: it is truncated or corrupt; make it again with {rebuild}"
+        )
+    return mesh
+
+
+def _ply_counts(path: Path) -> tuple[int | None, int | None]:
+    """(vertex, face) counts a PLY file's header announces; (None, None) for other files."""
+    with open(path, "rb") as f:
+        if f.readline().strip() != b"ply":
+            return None, None
+        counts = {}
+        for line in f:
+            words = line.split()
+            if words[:1] == [b"end_header"]:
+                break
+            if words[:1] == [b"element"] and len(words) == 3:
+                counts[words[1].decode(errors="replace")] = int(words[2])
+    return counts.get("vertex", 0), counts.get("face", 0)
 
 
 def write_mask(path: str | os.PathLike, mask: np.ndarray) -> None:

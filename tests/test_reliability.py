@@ -318,3 +318,104 @@ def test_the_edits_listed_when_one_is_missing_are_finished_ones(run, tmp_path):
     (run / "edits" / "stale.partial").mkdir()
     proc = sine("render", run, "--edit", "nope", "--out", tmp_path / "r", "--quiet")
     assert "(edits there: done);" in one_line_error(proc)
+
+
+# ---- outputs and inputs that must not meet -----------------------------------------------------
+def cli_error(capsys, *args) -> str:
+    """The one-line error of `sine ARGS` run in this process (exit code 2)."""
+    capsys.readouterr()
+    assert sine_cli.main([str(a) for a in args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: "), err
+    return err[0]
+
+
+def test_outputs_never_overwrite_the_run(run, tmp_path, capsys):
+    image = run / "images" / "r_001.png"
+    before = image.read_bytes()
+    assert "would overwrite the run's own images" in cli_error(
+        capsys, "snapshot", run, "--view", VIEW, "--out", image
+    )
+    assert "is the run directory itself" in cli_error(
+        capsys, "render", run, "--views", "test", "--out", run, "--quiet"
+    )
+    assert "would overwrite the run's own proxy_mesh.ply" in cli_error(
+        capsys, "export", run, "--out", run / "proxy_mesh.ply"
+    )
+    assert image.read_bytes() == before
+    (tmp_path / "folder.ply").mkdir()
+    assert "is a folder: give the name of a file" in cli_error(
+        capsys, "export", run, "--out", tmp_path / "folder.ply"
+    )
+    (tmp_path / "file").write_text("x")
+    assert "is an existing file; give a folder" in cli_error(
+        capsys, "render", run, "--views", "test", "--out", tmp_path / "file", "--quiet"
+    )
+    assert "--chunk must be >= 1" in cli_error(
+        capsys, "render", run, "--views", "test", "--out", tmp_path / "r", "--chunk", 0
+    )
+
+
+def test_a_truncated_proxy_is_refused_with_the_command_that_rebuilds_it(run, tmp_path, capsys):
+    proxy = run / "proxy_mesh.ply"
+    proxy.write_bytes(proxy.read_bytes()[: proxy.stat().st_size // 2])
+    rebuild = f"make it again with `sine recon CAPTURE --out {run} --force`"
+    assert rebuild in cli_error(capsys, "export", run, "--out", tmp_path / "m.ply")
+    fit = {**TINY_FIT, "iterations": 5, "detail_steps": 0, "threads": 1}
+    assert rebuild in cli_error(capsys, "fit", run, "--force", "--quiet", *flags(fit))
+
+
+def test_a_texture_edit_takes_a_target_or_a_reference(run, tmp_path, capsys):
+    target = tmp_path / "t.png"
+    assert "not both" in cli_error(
+        capsys,
+        "edit",
+        run,
+        "--mode",
+        "texture",
+        "--view",
+        VIEW,
+        "--target",
+        target,
+        "--reference",
+        target,
+    )
+
+
+def test_ingest_keeps_captures_and_runs_apart(tmp_path, capsys):
+    from recon.synth import SynthConfig, synthesize
+
+    capture = tmp_path / "capture"
+    synthesize(
+        SynthConfig(out=capture, procedural="toycar", views=6, width=32, height=32, supersample=1),
+        progress=False,
+    )
+    before = io.artefact_digest(capture)
+    assert "overlap" in cli_error(capsys, "ingest", capture, "--out", capture)
+    assert "overlap" in cli_error(capsys, "ingest", capture, "--out", capture / "run")
+    assert io.artefact_digest(capture) == before
+    assert sine_cli.main(["ingest", str(capture), "--out", str(tmp_path / "run")]) == 0
+    other = tmp_path / "other"
+    shutil.copytree(capture, other)
+    assert "already holds another capture" in cli_error(
+        capsys, "ingest", other, "--out", tmp_path / "run"
+    )
+    broken = tmp_path / "broken"
+    shutil.copytree(capture, broken)
+    frame = broken / "images" / "r_003.png"
+    frame.write_bytes(frame.read_bytes()[:200])  # a PNG cut short: refused half-way
+    capsys.readouterr()
+    assert sine_cli.main(["ingest", str(broken), "--out", str(tmp_path / "new")]) == 2
+    assert not (tmp_path / "new").exists()  # no half-made run left behind
+
+
+def test_a_failed_torch_write_is_one_line(tmp_path, monkeypatch):
+    import torch
+
+    def failing_save(*args, **kwargs):
+        raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 64 vs 0")
+
+    monkeypatch.setattr(torch, "save", failing_save)
+    with pytest.raises(SineError, match=r"cannot write .*a\.pt \("):
+        io.save_torch(tmp_path / "a.pt", {"x": 1})
+    assert list(tmp_path.iterdir()) == []
