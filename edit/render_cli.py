@@ -101,10 +101,9 @@ def feature_images(run_dir, template, chunk: int):
 
 def run(args: argparse.Namespace) -> int:
     from edit.scene import load_scene
+    from recon.rundir import RunDir
     from render.device import torch_threads
     from render.frames import render_frames
-
-    from recon.rundir import RunDir
     from render.io import require_directory
 
     cfg = validate(from_args(RenderConfig, args))

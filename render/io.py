@@ -285,9 +285,7 @@ def read_triangle_mesh(path: str | os.PathLike, rebuild: str):
         raise SineError(f"{path} does not exist; make it with {rebuild}")
     mesh = o3d.io.read_triangle_mesh(str(path))
     vertices, faces = _ply_counts(path)
-    complete = vertices is None or (
-        len(mesh.vertices) == vertices and len(mesh.triangles) >= faces
-    )
+    complete = vertices is None or (len(mesh.vertices) == vertices and len(mesh.triangles) >= faces)
     if len(mesh.triangles) == 0 or not complete:
         raise SineError(
             f"cannot read {path}: it is truncated or corrupt; make it again with {rebuild}"
