@@ -61,6 +61,69 @@ class MeshData:
     def replace(self, **changes) -> MeshData:
         return dataclasses.replace(self, **changes)
 
+    def subdivided(self, max_edge: float, where: Callable[[np.ndarray], np.ndarray]) -> MeshData:
+        """The same surface with every face that `where(vertices [V, 3]) -> [V] bool` selects
+        (any of its corners) split at its edges' midpoints until no selected face has an edge
+        longer than `max_edge`: a displacement applied at the vertices then follows a smooth
+        field inside big faces too. The original vertices keep their indices (new ones are
+        appended); every per-face and per-vertex attribute is carried over (per-vertex ones and
+        UVs by their barycentric coordinates in the face they split)."""
+        import trimesh
+
+        vertices, faces = self.vertices, self.faces
+        rest, colours = self.rest_vertices, self.vertex_colors
+        origin = np.arange(len(faces))  # [F'] the original face of each face
+        for _ in range(12):
+            tri = vertices[faces]
+            longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
+            split = np.flatnonzero((longest > max_edge) & where(vertices)[faces].any(axis=1))
+            if len(split) == 0:
+                break
+            new_vertices, new_faces, children = trimesh.remesh.subdivide(
+                vertices, faces, face_index=split, return_index=True
+            )
+            parent = np.empty(len(new_faces), np.int64)  # the face each new face split from
+            keep = np.setdiff1d(np.arange(len(faces)), split)
+            parent[: len(keep)] = keep
+            for face, kids in children.items():
+                parent[kids] = face
+            # the appended vertices' attributes, by their barycentrics in the face they split
+            corner_ids = new_faces.reshape(-1)
+            added = corner_ids >= len(vertices)
+            ids, parents = corner_ids[added], np.repeat(parent, 3)[added]
+            bary = _barycentric(vertices[faces[parents]], new_vertices[ids][:, None])[:, 0]
+            rest_new = np.empty((len(new_vertices), 3))
+            colours_new = np.empty((len(new_vertices), 3), np.float32)
+            rest_new[: len(vertices)], colours_new[: len(vertices)] = rest, colours
+            rest_new[ids] = np.einsum("nk,nkd->nd", bary, rest[faces[parents]])
+            colours_new[ids] = np.einsum("nk,nkd->nd", bary, colours[faces[parents]])
+            vertices, faces, rest, colours = new_vertices, new_faces, rest_new, colours_new
+            origin = origin[parent]
+        if len(faces) == len(self.faces):
+            return self
+        uvs = None
+        if self.face_uvs is not None:  # each new corner's barycentrics in its original face
+            bary = _barycentric(self.rest_vertices[self.faces[origin]], rest[faces])  # [F, 3, 3]
+            uvs = np.einsum("fkc,fcu->fku", bary, self.face_uvs[origin])
+        color_fn = self.color_fn
+        if color_fn is not None:  # a procedural albedo reads the original faces' ids
+
+            def color_fn(points, face_ids, source=self.color_fn, origin=origin):
+                return source(points, origin[np.asarray(face_ids)])
+
+        return self.replace(
+            vertices=vertices,
+            faces=faces,
+            color_fn=color_fn,
+            rest_vertices=rest,
+            vertex_colors=colours,
+            face_parts=self.face_parts[origin],
+            face_uvs=uvs,
+            face_texture=self.face_texture[origin],
+            face_smooth=self.face_smooth[origin],
+            weld=_appended_weld(self.weld, vertices[len(self.vertices) :]),
+        )
+
     # ---- per-hit lookups ------------------------------------------------------------------
     def rest_points(self, face_ids: np.ndarray, bary: np.ndarray) -> np.ndarray:
         """Rest-space positions [N, 3] of hits given by faces [N] and barycentrics [N, 3]."""
@@ -229,3 +292,24 @@ def recolor_albedo(albedo: np.ndarray, recolor: dict, points: np.ndarray | None 
     # Grey surfaces have no hue to rotate: give them some saturation so the edit is visible.
     hsv[:, 1] = np.maximum(hsv[:, 1], float(recolor.get("min_saturation", 0.0)))
     return cv2.cvtColor(hsv[None], cv2.COLOR_HSV2RGB)[0]
+
+
+def _barycentric(triangles: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates [F, K, 3] of points [F, K, 3] in triangles [F, 3, 3]."""
+    a, b, c = triangles[:, 0:1], triangles[:, 1:2], triangles[:, 2:3]  # [F, 1, 3]
+    v0, v1, v2 = b - a, c - a, points - a
+    d00, d01, d11 = (v0 * v0).sum(-1), (v0 * v1).sum(-1), (v1 * v1).sum(-1)
+    d20, d21 = (v2 * v0).sum(-1), (v2 * v1).sum(-1)
+    denom = np.maximum(d00 * d11 - d01 * d01, 1e-30)
+    v = (d11 * d20 - d01 * d21) / denom
+    w = (d00 * d21 - d01 * d20) / denom
+    return np.stack([1.0 - v - w, v, w], axis=-1)
+
+
+def _appended_weld(weld: np.ndarray, added: np.ndarray) -> np.ndarray:
+    """The weld [V + A] of a mesh whose vertices `added` [A, 3] were appended: the old vertices
+    keep their welded ids (so the welded mesh starts with the old one, in its order), the added
+    ones are merged by position after them."""
+    _, inverse = np.unique(added, axis=0, return_inverse=True)
+    start = int(weld.max()) + 1 if len(weld) else 0
+    return np.concatenate([weld, start + inverse.reshape(-1)])

@@ -268,9 +268,19 @@ def stretch_displacement(points: np.ndarray, plane, scale: float, falloff: float
 
 
 def geometric_edit(mesh: MeshData, plane, scale: float, falloff: float) -> MeshData:
-    """The mesh with the part above `plane` stretched along its normal (rest positions kept)."""
+    """The mesh with the part above `plane` stretched along its normal (rest positions kept).
+
+    The faces that reach above the plane are first split into edges of at most
+    STRETCH_MAX_EDGE, so the rendered surface follows the smooth stretch inside big faces too
+    (a box's side spanning the plane would otherwise stretch uniformly from corner to corner,
+    and its texture with it, unlike `stretch_displacement` at the points between)."""
+    reach = STRETCH_MAX_EDGE
+    mesh = mesh.subdivided(reach, lambda v: plane_side(v, normalised_plane(plane)) > -reach)
     moved = mesh.vertices + stretch_displacement(mesh.vertices, plane, scale, falloff)
     return mesh.replace(vertices=moved)
+
+
+STRETCH_MAX_EDGE = 0.02  # run units (the object within radius 0.8): edges of a stretched face
 
 
 def part_vertex_mask(mesh: MeshData, part: int) -> np.ndarray:
@@ -1168,7 +1178,8 @@ def _geometric_params(cfg: SynthConfig, mesh: MeshData, hints: dict):
             "falloff": float(cfg.edit_falloff),
             "formula": "x' = x + (scale - 1) * G(n.x - D) * n, see recon.synth.stretch_displacement",
         }
-    moved = np.linalg.norm(edited.vertices - mesh.vertices, axis=1)
+    # the original vertices (a stretch appends the vertices that split its faces)
+    moved = np.linalg.norm(edited.vertices[: len(mesh.vertices)] - mesh.vertices, axis=1)
     params.update(
         units="run units of the synth (mesh.ply, cameras.json; synth.json normalization)",
         vertices_moved=int((moved > 0).sum()),

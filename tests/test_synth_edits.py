@@ -127,7 +127,7 @@ def test_tilted_plane_synth_moves_along_the_normal(tmp_path):
     n = np.array([1.0, 0.0, 1.0]) / np.sqrt(2)
     np.testing.assert_allclose(edit["plane"], [*n, 0.2 / np.sqrt(2)])
     before = _vertices(out / "mesh.ply")
-    after = _vertices(out / "edits" / "geometric" / "mesh.ply")
+    after = _vertices(out / "edits" / "geometric" / "mesh.ply")[: len(before)]  # + split faces
     np.testing.assert_allclose(gt.vertices, before, atol=1e-6)  # the PLY holds float32
     np.testing.assert_allclose(after - before, gt.displacement, atol=1e-6)
     s = before @ n - edit["plane"][3]
@@ -359,3 +359,63 @@ def test_another_edit_with_the_cameras_of_an_earlier_capture(scaled, tmp_path):
     wrong = SynthConfig(**{**cfg.__dict__, "out": tmp_path / "w", "views": TINY["views"] + 1})
     with pytest.raises(SineError, match="give the same --views, --width, --height"):
         synthesize(wrong, progress=False)
+
+
+def _points_on_faces(mesh, n: int = 4000, seed: int = 0):
+    """(rendered, rest) positions [n, 3] of random points on the mesh's faces."""
+    rng = np.random.default_rng(seed)
+    faces = rng.integers(0, len(mesh.faces), n)
+    bary = rng.dirichlet([1.0, 1.0, 1.0], n)
+    return (
+        np.einsum("nk,nkd->nd", bary, mesh.vertices[mesh.faces[faces]]),
+        np.einsum("nk,nkd->nd", bary, mesh.rest_vertices[mesh.faces[faces]]),
+    )
+
+
+def test_a_stretch_follows_the_smooth_field_inside_big_faces():
+    from recon import procedural
+    from recon.synth import STRETCH_MAX_EDGE, geometric_edit, normalise, stretch_displacement
+
+    mesh, _ = normalise(procedural.build("toycar").mesh, "z")
+    plane = np.array([0.0, 0.0, 1.0, 0.1])
+    edited = geometric_edit(mesh, plane, 1.5, 0.1)
+    np.testing.assert_allclose(
+        edited.vertices[: len(mesh.vertices)] - mesh.vertices,
+        stretch_displacement(mesh.vertices, plane, 1.5, 0.1),
+    )
+    pos, rest = _points_on_faces(edited)
+    error = np.linalg.norm(pos - rest - stretch_displacement(rest, plane, 1.5, 0.1), axis=1)
+    assert error.max() < 2e-3  # piecewise linear over edges of STRETCH_MAX_EDGE
+    coarse = mesh.replace(
+        vertices=mesh.vertices + stretch_displacement(mesh.vertices, plane, 1.5, 0.1)
+    )
+    pos, rest = _points_on_faces(coarse)
+    coarse_error = np.linalg.norm(pos - rest - stretch_displacement(rest, plane, 1.5, 0.1), axis=1)
+    assert coarse_error.max() > 0.02  # the cabin's sides, corner to corner
+    above = (edited.rest_vertices[edited.faces] @ plane[:3] > plane[3] + STRETCH_MAX_EDGE).all(1)
+    tri = edited.rest_vertices[edited.faces[above]]
+    assert np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max() <= STRETCH_MAX_EDGE
+    labels = np.unique(edited.face_parts)
+    np.testing.assert_array_equal(labels, np.unique(mesh.face_parts))
+
+
+def test_subdivision_carries_uvs_and_vertex_colours():
+    from recon.mesh_data import MeshData
+
+    square = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], float)
+    faces = np.array([[0, 1, 2], [1, 3, 2]])
+    mesh = MeshData(
+        vertices=square,
+        faces=faces,
+        part_names={1: "all"},
+        face_parts=[1, 1],
+        vertex_colors=square.astype(np.float32),  # colour = position
+        face_uvs=square[faces][..., :2],  # uv = xy
+        face_texture=np.zeros(2, np.int64),
+        textures=[np.zeros((4, 4, 3), np.float32)],
+    )
+    fine = mesh.subdivided(0.3, lambda v: v.sum(axis=1) > 1.5)  # the triangle at (1, 1) only
+    assert len(fine.faces) > 2 and (fine.faces[0] == faces[0]).all()
+    np.testing.assert_allclose(fine.face_uvs, fine.vertices[fine.faces][..., :2], atol=1e-12)
+    np.testing.assert_allclose(fine.vertex_colors, fine.vertices, atol=1e-6)
+    np.testing.assert_array_equal(fine.vertices[:4], square)
