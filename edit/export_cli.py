@@ -34,10 +34,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def export_mesh(scene, out: Path, normalized: bool = False) -> dict:
     """Writes `scene`'s coloured mesh to `out` (capture units unless `normalized`), holding the
     lock of `out`: a second export to the same file is refused while this one runs."""
+    from render.io import remove_partial_writes
     from render.locks import lock_entry
     from render.mesh_export import denormalize_points, save_colored_mesh
 
     with lock_entry(out, f"the mesh {out}"):
+        remove_partial_writes(Path(out).parent, recursive=False, of=out)
         vertices, triangles, colors = scene.colored_mesh()
         units = "run"
         if not normalized:

@@ -218,7 +218,8 @@ def dino_features(
     feats = dino.extract(
         images, batch_size=cfg.batch_views, size=size, facet=cfg.facet, progress=progress
     )  # [N, C, h, w]
-    save_torch(cache, {"key": json.dumps(key), "features": feats.half()})
+    feats = feats.half()  # as cached: a resumed run reads these very features
+    save_torch(cache, {"key": json.dumps(key), "features": feats})
     return {**result, "features": feats.float()}
 
 

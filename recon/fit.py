@@ -1010,7 +1010,9 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     for group in detail_groups:
         schedules[group["name"]] = lambda i: detail_decay(max(0, i - cfg.iterations))
     phases = {"main_seconds": None}  # the main steps' training time, once they are done
+    edge_share = [float(pool.edge.float().mean())]  # of the last batch's pixels ("edge")
     state = {
+        "edge_share": edge_share,  # sizes the next batch: resumed with the rest
         "field": field,
         "background": background,
         "ray_errors": pool.errors,
@@ -1028,7 +1030,6 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     box_from = round(cfg.supersample_from * cfg.iterations) if sub > 1 else cfg.iterations + 1
     box_part = cfg.error_sampling if cfg.supersample_pixels == "error" else 1.0
     by_edge = cfg.supersample_pixels == "edge"
-    edge_share = [float(pool.edge.float().mean())]  # of the last batch's pixels ("edge")
     average_from = cfg.iterations // 2 if averaged is not None else None
 
     def step(i: int) -> dict[str, torch.Tensor]:

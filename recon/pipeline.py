@@ -23,7 +23,15 @@ from recon.rundir import RunDir
 from render.cameras import Camera, CameraSet
 from render.configs import option, to_dict, validate
 from render.errors import SineError
-from render.io import atomic_path, read_depth, read_json, read_mask, write_depth, write_json
+from render.io import (
+    atomic_path,
+    read_depth,
+    read_json,
+    read_mask,
+    remove_partial_writes,
+    write_depth,
+    write_json,
+)
 from render.locks import lock_folder
 
 STAGES = ("ingest", "masks", "poses", "normalize", "depth", "proxy_mesh", "report")
@@ -306,12 +314,23 @@ class Pipeline:
                 return self.state["stages"][stage]
             print(f"[recon] {stage}: options changed ({'; '.join(changes)}): running it again")
         t0 = time.perf_counter()
+        if STAGES.index(stage) < STAGES.index("normalize"):
+            self.drop_given_inputs()  # new cameras and depth on the way: normalise those
         info = fn(*args) or {}
         self._record(stage, info, time.perf_counter() - t0)
+        if stage == "normalize":  # recorded: the inputs it kept aside are no longer needed
+            self.drop_given_inputs()
         print(f"[recon] {stage}: {time.perf_counter() - t0:.1f} s")
         return self.state["stages"][stage]
 
     # ---- helpers ----------------------------------------------------------------------------
+    def drop_given_inputs(self) -> None:
+        """Removes what an interrupted normalize stage kept of its inputs (see stage_normalize)."""
+        (self.run.root / GIVEN_CAMERAS).unlink(missing_ok=True)
+        if self.run.depth.is_dir():
+            for kept in self.run.depth.glob(f"*{GIVEN_DEPTH}"):
+                kept.unlink()
+
     def views(self) -> list[dict]:
         return [r for r in self.run.load_captures()["images"] if r.get("status", "ok") == "ok"]
 
@@ -668,20 +687,26 @@ class Pipeline:
 
     def stage_normalize(self) -> dict:
         from recon.normalize import apply_normalization, compute_normalization
-        from recon.poses import rescale_depth
+        from render.cameras import load_cameras, save_cameras
 
-        cams = self.run.load_cameras()
+        # the stage rewrites its own inputs: they are kept aside until it is recorded, so an
+        # interrupted stage starts again from them (never from its half-written outputs)
+        given = self.run.root / GIVEN_CAMERAS
+        if not given.is_file():
+            save_cameras(given, self.run.load_cameras())
+        cams = load_cameras(given)
         norm, stats = compute_normalization(
             cams.frames, self.masks_for(cams.frames), self.cfg.target_radius
         )
         new = apply_normalization(cams, norm)
+        for cam in cams.frames:  # depth follows the frame's units
+            depth = self.run.depth_path(cam.name)
+            kept = depth.with_name(depth.stem + GIVEN_DEPTH)
+            if depth.is_file() and not kept.is_file():
+                write_depth(kept, read_depth(depth))
+            if kept.is_file():
+                write_depth(depth, read_depth(kept) * np.float32(norm.scale))
         self.run.save_cameras(new)
-        depth_files = [
-            self.run.depth_path(c.name)
-            for c in cams.frames
-            if self.run.depth_path(c.name).is_file()
-        ]
-        rescale_depth(depth_files, norm.scale)  # depth follows the frame's units
         return {
             **stats,
             "normalization_scale": new.scale,
@@ -808,6 +833,10 @@ class Pipeline:
         raise SineError(stop_message(stage, check["reasons"], pose_source))
 
 
+# what the normalize stage keeps of its inputs until it is recorded
+GIVEN_CAMERAS, GIVEN_DEPTH = "cameras_given.json", ".given.npy"
+
+
 def run_recon(capture: Path | None, run: RunDir, cfg: ReconConfig, ingest_cfg=None) -> dict:
     """Runs every stage (skipping finished ones unless ingest_cfg.force or their options
     changed); returns the report."""
@@ -825,6 +854,8 @@ def run_recon(capture: Path | None, run: RunDir, cfg: ReconConfig, ingest_cfg=No
 def _recon(capture: Path | None, run: RunDir, cfg: ReconConfig, ingest_cfg, new_run) -> dict:
     from recon.ingest import ingest_capture
 
+    for folder in (run.root, run.images, run.masks, run.depth):  # writes a kill cut short
+        remove_partial_writes(folder, recursive=False)
     pipe = Pipeline(run, cfg, force=ingest_cfg.force, ignore_poses=ingest_cfg.ignore_poses)
     if capture is not None:
         t0 = time.perf_counter()
@@ -836,6 +867,7 @@ def _recon(capture: Path | None, run: RunDir, cfg: ReconConfig, ingest_cfg, new_
             raise
         seconds = time.perf_counter() - t0
         if not summary.get("skipped") or not pipe._done("ingest"):
+            pipe.drop_given_inputs()
             pipe._record("ingest", {"total_views": summary["views"]}, seconds)
         print(f"[recon] ingest: {'done already' if summary.get('skipped') else f'{seconds:.1f} s'}")
     elif not run.captures.is_file():

@@ -90,6 +90,7 @@ from render.io import (
     artefact_digest,
     load_torch,
     read_json,
+    remove_partial_writes,
     save_torch,
     torch_read_problem,
     write_json,
@@ -372,6 +373,7 @@ class Trainer:
             changes = self._changes(header["config"])
             if not changes:
                 self._resumable = True
+                remove_partial_writes(self.work_dir)  # a write the interruption cut short
                 return
             self._say(
                 f"discarding the interrupted run in {self.work_dir}, {size} ({'; '.join(changes)})"
@@ -539,6 +541,7 @@ class Trainer:
     def publish(self) -> None:
         """Writes log.json and moves work_dir to `directory`, replacing the old results."""
         write_json(self.work_dir / "log.json", self.log)
+        remove_partial_writes(self.work_dir)
         old = self.directory.with_name(self.directory.name + ".old")
         shutil.rmtree(old, ignore_errors=True)
         if self.directory.exists():

@@ -26,7 +26,7 @@ from tqdm import tqdm
 from render.camera_paths import write_camera_path
 from render.cameras import Camera
 from render.feature_field import pca_rgb
-from render.io import write_image
+from render.io import remove_partial_writes, write_image
 from render.locks import lock_folder
 from render.video import VideoWriter
 
@@ -87,6 +87,7 @@ def render_frames(
     feature images."""
     out_dir = Path(out_dir)
     with lock_folder(out_dir, f"the render folder {out_dir}"):
+        remove_partial_writes(out_dir)  # frames an interrupted render was writing
         write_camera_path(out_dir / "camera_path.json", cameras, fps)
         names = [Path(c.name).stem if c.name else f"{i:04d}" for i, c in enumerate(cameras)]
         if len(set(names)) != len(names):

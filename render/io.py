@@ -14,6 +14,7 @@ import errno
 import json
 import os
 import pickle
+import re
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -57,6 +58,33 @@ def write_error(path: str | os.PathLike, exc: OSError) -> SineError:
 
 
 WRITE_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM)
+
+
+# the temporary file `atomic_path` writes before the rename: ".STEM.<8 random characters>SUFFIX"
+_PARTIAL_WRITE = re.compile(r"^\..+\.[a-z0-9_]{8}(\.[A-Za-z0-9]+)?$")
+
+
+def remove_partial_writes(
+    folder: str | os.PathLike, recursive: bool = True, of: str | os.PathLike | None = None
+) -> int:
+    """Deletes the temporary files that writers killed mid-write (kill -9, power loss) left in
+    `folder` (only those of the file `of`, when given); returns how many. Only for what the
+    caller holds the lock of (a writer at work there would lose its file)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return 0
+    start, end = (f".{Path(of).stem}.", Path(of).suffix) if of is not None else (".", "")
+    found = [
+        p
+        for p in (folder.rglob(start + "*") if recursive else folder.glob(start + "*"))
+        if p.is_file()
+        and _PARTIAL_WRITE.match(p.name)
+        and p.name.endswith(end)
+        and not p.name.endswith(".lock")
+    ]
+    for p in found:
+        p.unlink(missing_ok=True)
+    return len(found)
 
 
 @contextlib.contextmanager

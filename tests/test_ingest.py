@@ -224,7 +224,7 @@ def test_transforms_nerf_blender_form(tmp_path):
     )
     assert detect_format(root) == "transforms"  # a folder with split files: NeRF synthetic
     for capture in (root, root / "transforms_train.json"):
-        run = RunDir(tmp_path / capture.name)
+        run = RunDir(tmp_path / "runs" / capture.name)  # beside the capture, not in it
         summary = ingest_capture(capture, run, IngestConfig(width=64))
         assert summary["views"] == summary["train"] == 3
         assert summary["masks"] == summary["alpha_masks"] == 3
