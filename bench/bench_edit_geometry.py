@@ -1,26 +1,34 @@
-"""Geometric editing against ground truth: ours, the naive baseline and the ablations, per object.
+"""Geometric editing against ground truth, as a grid: object x GT edit kind x method.
 
     python bench/bench_edit_geometry.py --out bench/out/edit_geometry [--quick]
-        [--objects toycar figurine spot] [--methods ours naive no_gp no_cyc no_reg]
+        [--objects toycar figurine spot avocado bob mug chair] [--edits vertical sideways ...]
+        [--methods template ours naive oracle_prior oracle_deform ...]
 
-For each object: a synthetic turntable with a ground-truth geometric edit (`sine synth --edit
-geometric`: the part above a plane stretched by 1.5 along its normal), `sine recon` (known poses),
-`sine fit` (defaults), then every method edits from ONE view: the target is the ground-truth edited
-image of the training view where the edit changes the silhouette most (its mask is the target's
+For each object: a synthetic turntable (`sine synth`), `sine recon` (known poses) and `sine fit`
+(defaults) once; then for each GT edit kind (EDIT_KINDS: `vertical`, the part above a horizontal
+plane stretched 1.5x upwards; `sideways`, a plane with a horizontal normal; `tilted`, a plane
+at 45 degrees; `scale_part`, one part scaled 1.3x about its centre) the GT edit rendered with
+the same cameras, and every method edits from ONE view: the target is the GT edited image of
+the training view where the edit changes the silhouette most (its mask is the target's
 silhouette). Scored on held-out edited views (every 4th view around the ring, the edited view
 excluded) against the ground truth:
 - heldout_psnr: on object pixels (GT mask or rendered opacity > 0.5); heldout_psnr_image: whole image;
 - heldout_ssim (whole image), heldout_silhouette_iou (opacity > 0.5 vs GT mask);
 - unedited_psnr: the edit vs the template's own rendering outside the edited part: object pixels
-  whose visible surface lies below the edit's plane in both the GT original and the GT edit
-  (from the synth's depth maps) and whose GT colour did not change: does the rest stay intact?
-  unedited_psnr_pixels: the first sessions' definition, every object pixel whose GT colour and
-  mask did not change, which also counts pixels *inside* the edited part whose colour happens
-  to match before and after (a stretched window over the old window).
-`--methods ... symmetric` adds ours with the mirrored prior (`--symmetric`); `template` scores the
-unedited template against the edited ground truth (the reference every edit should beat).
-Writes DIR/results.json ({"cases": [...]}) and DIR/<object>_sheet.png (rows: held-out views;
-columns: template | each method | ground truth). `--quick`: toycar only, ours + naive, fewer steps.
+  whose visible surface the GT edit does not move, in the GT original and in the GT edit (from
+  the synth's depth maps and `recon.synth.gt_displacement`), and whose GT colour did not change;
+  unedited_psnr_pixels: every object pixel whose GT colour and mask did not change;
+- template_fidelity: the template against the unedited GT on the same views (object pixels).
+Methods: `template` (no edit), `ours`, `naive` (the single-view fine-tune), the oracles (the
+truth put in place of one stage: `oracle_prior`, ours learnt from the proxy moved by the GT
+displacement as its shape prior; `oracle_deform`, the template rendered through the exact GT
+deformation, its colours unchanged), VARIANTS (ours with options changed) and EXPERIMENTS
+(ours with a mechanism swapped in the bench only). The second table splits the error: template
+fidelity -> GT deformation (what deforming the template costs at all) -> learnt from the GT
+prior (what learning the deformation field costs) -> ours (what our prior costs).
+Writes DIR/results.json ({"cases": [...]}) and DIR/<object>_<edit>_sheet.png (rows: held-out
+views; columns: template | each method | ground truth). `--quick`: toycar and mug, vertical and
+sideways, 300 steps.
 """
 
 from __future__ import annotations
@@ -31,6 +39,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse
 import contextlib
+import importlib
 import json
 import sys
 import time
@@ -299,6 +308,39 @@ EDIT_KINDS = {
 }
 # the part a scale_part edit scales: a small part of each procedural object
 SCALED_PART = {"toycar": 2, "figurine": 3, "mug": 3, "chair": 1}  # cabin, head, band, seat
+
+
+def handles_through(original):
+    """A stand-in for `shape_prior.lift_handles` (an experiment): besides the visible vertices
+    that follow the image motion, the hidden vertices whose projection falls in the editable
+    region become handles with the move of the nearest visible handle in the image (within 3
+    px): the 2D edit applies through the object's depth, not only to the surface view K sees
+    (a sideways stretch seen from the side moves the far side as much as the near one)."""
+    from scipy.spatial import cKDTree
+
+    from edit.shape_prior import Handles, visible_vertices
+
+    def lift(camera, vertices, proxy_depth, flow, region, *args, **kwargs):
+        handles = original(camera, vertices, proxy_depth, flow, region, *args, **kwargs)
+        tol = args[2] if len(args) > 2 else kwargs["visibility_tol"]
+        if len(handles.ids) == 0:
+            return handles
+        visible, in_image, py, px = visible_vertices(camera, vertices, proxy_depth, tol)
+        hidden = np.flatnonzero(in_image & ~visible & region[py, px])
+        hidden = np.setdiff1d(hidden, np.concatenate([handles.ids, handles.anchor_ids]))
+        uv, _ = camera.project(vertices)
+        dist, nearest = cKDTree(uv[handles.ids]).query(uv[hidden])
+        near = dist < 3.0
+        moves = handles.targets - vertices[handles.ids]
+        ids = np.concatenate([handles.ids, hidden[near]])
+        targets = np.concatenate([handles.targets, vertices[hidden[near]] + moves[nearest[near]]])
+        return Handles(ids, targets, handles.anchor_ids)
+
+    return lift
+
+
+# mechanisms tried in the bench only: name -> (module, attribute, wrapper of the original)
+EXPERIMENTS = {"through": ("edit.shape_prior", "lift_handles", handles_through)}
 # the object's truth put in place of one stage of ours (see gt_prior, gt_deformed_scene)
 ORACLES = ("oracle_prior", "oracle_deform")
 QUICK = {"objects": ["toycar", "mug"], "edits": ["vertical", "sideways"]}
@@ -348,8 +390,14 @@ def run_method(method, run, syn, k, cfg, name):
     move, inverse = gt_move(run, syn)
     if method == "oracle_deform":
         return {}, gt_deformed_scene(template, move, inverse)
-    prior = mock.patch.object(geometry_edit, "build_prior_mesh", gt_prior(move))
-    with prior if method == "oracle_prior" else contextlib.nullcontext():
+    patch = contextlib.nullcontext()
+    if method == "oracle_prior":
+        patch = mock.patch.object(geometry_edit, "build_prior_mesh", gt_prior(move))
+    elif method in EXPERIMENTS:
+        module, name, wrap = EXPERIMENTS[method]
+        target = importlib.import_module(module)
+        patch = mock.patch.object(target, name, wrap(getattr(target, name)))
+    with patch:
         m = run_geometry_edit(run.root, k, target, name, cfg, mask=mask, progress=False)
     return m, load_scene(run.root, edit=name)
 
@@ -381,7 +429,7 @@ def main() -> int:
         "--methods",
         nargs="+",
         default=["template", "ours", "naive", *ORACLES],
-        choices=["template", "ours", "naive", *ORACLES, *VARIANTS],
+        choices=["template", "ours", "naive", *ORACLES, *VARIANTS, *EXPERIMENTS],
     )
     ap.add_argument("--size", type=int, default=256, help="image size (square)")
     ap.add_argument("--views", type=int, default=36, help="views on the ring")
