@@ -138,7 +138,13 @@ class RunDir:
 
     def load_cameras(self) -> CameraSet:
         self.require("cameras")
-        return load_cameras(self.cameras)
+        try:
+            return load_cameras(self.cameras)
+        except (SineError, KeyError, TypeError, ValueError) as exc:
+            why = str(exc) if isinstance(exc, SineError) else f"{self.cameras} is not a camera file"
+            raise SineError(
+                f"{why}; make it again with `sine recon CAPTURE --out {self.root} --force`"
+            ) from None
 
     def save_cameras(self, cameras: CameraSet) -> None:
         save_cameras(self.cameras, cameras)

@@ -419,3 +419,37 @@ def test_a_failed_torch_write_is_one_line(tmp_path, monkeypatch):
     with pytest.raises(SineError, match=r"cannot write .*a\.pt \("):
         io.save_torch(tmp_path / "a.pt", {"x": 1})
     assert list(tmp_path.iterdir()) == []
+
+
+def test_truncated_cameras_name_the_command_that_rebuilds_them(run, tmp_path, capsys):
+    cameras = run / "cameras.json"
+    cameras.write_text(cameras.read_text()[:500])
+    line = cli_error(capsys, "render", run, "--views", "test", "--out", tmp_path / "r", "--quiet")
+    assert "cameras.json is not valid JSON" in line
+    assert line.endswith(f"make it again with `sine recon CAPTURE --out {run} --force`")
+
+
+def test_outputs_on_another_file_system(run, capsys):
+    """The atomic writes rename within the destination folder: a tmpfs output works."""
+    shm = Path("/dev/shm")
+    if not shm.is_dir() or os.stat(shm).st_dev == os.stat(run).st_dev:
+        pytest.skip("no second file system here")
+    out = Path(tempfile.mkdtemp(dir=shm))
+    try:
+        assert sine_cli.main(["export", str(run), "--out", str(out / "m.ply")]) == 0
+        assert (
+            sine_cli.main(
+                ["render", str(run), "--views", "test", "--out", str(out / "r"), "--quiet"]
+            )
+            == 0
+        )
+        assert (out / "m.ply").stat().st_size > 0 and any((out / "r" / "rgb").iterdir())
+        assert stat.S_IMODE((out / "m.ply").stat().st_mode) == 0o666 & ~_umask_now()
+    finally:
+        shutil.rmtree(out)
+
+
+def _umask_now() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
