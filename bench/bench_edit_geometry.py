@@ -395,8 +395,8 @@ def run_method(method, run, syn, k, cfg, name):
         patch = mock.patch.object(geometry_edit, "build_prior_mesh", gt_prior(move))
     elif method in EXPERIMENTS:
         module, name, wrap = EXPERIMENTS[method]
-        target = importlib.import_module(module)
-        patch = mock.patch.object(target, name, wrap(getattr(target, name)))
+        owner = importlib.import_module(module)
+        patch = mock.patch.object(owner, name, wrap(getattr(owner, name)))
     with patch:
         m = run_geometry_edit(run.root, k, target, name, cfg, mask=mask, progress=False)
     return m, load_scene(run.root, edit=name)
