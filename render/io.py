@@ -311,7 +311,9 @@ def read_triangle_mesh(path: str | os.PathLike, rebuild: str):
     path = Path(path)
     if not path.is_file():
         raise SineError(f"{path} does not exist; make it with {rebuild}")
-    mesh = o3d.io.read_triangle_mesh(str(path))
+    quiet = o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error)
+    with quiet, _native_stderr_silenced():  # its reader's complaints: the check below says it
+        mesh = o3d.io.read_triangle_mesh(str(path))
     vertices, faces = _ply_counts(path)
     complete = vertices is None or (len(mesh.vertices) == vertices and len(mesh.triangles) >= faces)
     if len(mesh.triangles) == 0 or not complete:
@@ -319,6 +321,22 @@ def read_triangle_mesh(path: str | os.PathLike, rebuild: str):
             f"cannot read {path}: it is truncated or corrupt; make it again with {rebuild}"
         )
     return mesh
+
+
+@contextlib.contextmanager
+def _native_stderr_silenced():
+    """Discards what native code writes to the process's stderr (fd 2) during the block."""
+    import sys
+
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def _ply_counts(path: Path) -> tuple[int | None, int | None]:
