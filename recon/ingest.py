@@ -813,12 +813,17 @@ def _config_key(cfg: IngestConfig) -> dict:
 def _refuse_another_capture(run: RunDir, source: str, force: bool) -> None:
     """A SineError when `run` already holds another capture (its own images, cameras, maybe a
     template and edits), unless --force replaces it."""
-    if force or not run.captures.is_file():
+    if force:
         return
-    try:
-        old = read_json(run.captures).get("source")
-    except SineError:
-        return  # an unreadable record: ingest again
+    if run.captures.is_file():
+        try:
+            old = read_json(run.captures).get("source")
+        except SineError:
+            return  # an unreadable record: ingest again
+    elif run.cameras.is_file() or run.template.is_dir():
+        old = "its cameras.json was not made by `sine ingest`"
+    else:
+        return
     if old is not None and old != source:
         raise SineError(
             f"{run.root} already holds another capture ({old}); write this one to a new --out, "

@@ -453,3 +453,17 @@ def _umask_now() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+def test_ingest_refuses_to_overwrite_a_run_it_did_not_make(run, tmp_path, capsys):
+    from recon.synth import SynthConfig, synthesize
+
+    capture = tmp_path / "capture"
+    synthesize(
+        SynthConfig(out=capture, procedural="toycar", views=6, width=32, height=32, supersample=1),
+        progress=False,
+    )
+    before = io.artefact_digest(run)
+    line = cli_error(capsys, "ingest", capture, "--out", run)  # `run`: a synth folder, fitted
+    assert "already holds another capture (its cameras.json was not made by `sine ingest`)" in line
+    assert io.artefact_digest(run) == before
