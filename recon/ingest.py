@@ -221,7 +221,11 @@ def _ingest(capture: Path, run: RunDir, cfg: IngestConfig, t0: float) -> dict:
     background = background_rgb(cfg.background_color)
     records, cameras = [], []
     for view, split, size in tqdm(
-        list(zip(cap.views, splits, sizes, strict=True)), desc="ingest", unit="view", leave=False
+        list(zip(cap.views, splits, sizes, strict=True)),
+        desc="ingest",
+        unit="view",
+        leave=False,
+        disable=None,  # no bar in a log: a refused capture leaves one line
     ):
         record, cam = _ingest_view(view, size, cfg, run, split, background)
         records.append(record)
