@@ -315,10 +315,9 @@ def check_kills(reference: Reference, base, kinds: tuple[str, ...]) -> list[Kill
 
 @pytest.mark.slow
 def test_recon_after_kill(references, base):
-    """A random kill point, and one in the normalize stage: after it rewrote cameras.json in the
-    run's frame and 3 of the 8 depth maps in its units (recon.poses.rescale_depth), before it
-    recorded itself as done."""
-    check_kills(references["recon"], base, ("start", "at recon.poses:write_depth 3"))
+    """A random kill point, and one in the normalize stage: after it kept two depth maps aside
+    and rewrote the first of them in the run's units, before it recorded itself as done."""
+    check_kills(references["recon"], base, ("start", "at recon.pipeline:write_depth 4"))
 
 
 @pytest.mark.slow
