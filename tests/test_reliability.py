@@ -467,3 +467,18 @@ def test_ingest_refuses_to_overwrite_a_run_it_did_not_make(run, tmp_path, capsys
     line = cli_error(capsys, "ingest", capture, "--out", run)  # `run`: a synth folder, fitted
     assert "already holds another capture (its cameras.json was not made by `sine ingest`)" in line
     assert io.artefact_digest(run) == before
+
+
+def test_a_truncated_edit_names_the_edit_command_that_rebuilds_it(run, tmp_path, capsys):
+    edit(run, "x", tmp_path / "t.png")
+    field = run / "edits" / "x" / "edit_field.pt"
+    field.write_bytes(field.read_bytes()[:1000])
+    line = cli_error(
+        capsys, "render", run, "--edit", "x", "--views", "test", "--out", tmp_path / "r"
+    )
+    command = (
+        f"sine edit {run} --name x --view {VIEW} --mode geometry --target {tmp_path / 't.png'}"
+    )
+    assert line.endswith(
+        f"make it again with `{command} --force` (and the options it was made with)"
+    )
