@@ -33,13 +33,14 @@ none of them: PSNR edit "-") against the kind's ground truth:
   heldout_psnr_edited (PSNR edit): the pixels the GT edit changed; heldout_ssim (whole image);
 - unedited_psnr: the edit vs the template's own rendering where the GT edit did not change the
   view (on the object): does the rest stay intact? (one_sided: the unpainted -y side counts here;
-  a mean of per-view dB: a leak seen in one view only weighs little);
+  a mean of per-view dB: a leak seen in one view only weighs little); unedited_psnr_pooled:
+  one PSNR over every view's unedited pixels together (such a leak counts fully);
 - mirrored: the edit's verdict on mirroring view K's painting across the proxy's mirror plane
   (metrics.json "mirror": mirrored, by, agreement): a one-sided painting must not be mirrored.
 Writes DIR/results.json ({"cases": [...]}; one case per object x kind x method), per case
 DIR/<object>_<kind><tag>_sheet.png (rows: held-out views; columns: template | each method |
 ground truth), and prints one markdown table (object | edit | method | PSNR obj | PSNR edit |
-SSIM | unedited | mirrored | s). `--quick`: toycar and mug, hue and one_sided, ours + naive,
+SSIM | unedited | unedited pooled | mirrored | s). `--quick`: toycar and mug, hue and one_sided, ours + naive,
 300 steps (--objects / --edits / --methods / --iterations still choose).
 
 `--reference OBJECT`: the unaligned case: each object's part (GT label in the editing view as the
