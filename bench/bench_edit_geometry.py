@@ -49,7 +49,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_objects import GRID_OBJECTS, case_name, synth_source  # noqa: E402
+from bench_objects import GRID_OBJECTS, case_name, gt_edit_capture, synth_source  # noqa: E402
 
 # ours with one option changed: the ablations, and the symmetric prior (beyond the paper)
 VARIANTS = {
@@ -320,30 +320,14 @@ QUICK = {"objects": ["toycar", "mug"], "edits": ["vertical", "sideways"]}
 
 
 def gt_edit(source: str, work: Path, kind: str, size: int, views: int) -> Path:
-    """The synth folder of the object's GT edit `kind`, rendered with the base capture's
-    cameras (work/synth), so one template serves every kind."""
-    from recon.synth import SynthConfig, synthesize
-
-    base = work / "synth"
+    """The synth folder of the object's GT edit `kind`: the base capture's (work/synth) for
+    vertical, else `gt_edit_capture`'s."""
     if kind == "vertical":
-        return base
-    syn = work / f"gt_{kind}"
-    if not (syn / "edits" / "geometric" / "edit.json").is_file():
-        synthesize(
-            SynthConfig(
-                out=syn,
-                views=views,
-                width=size,
-                height=size,
-                edit=["geometric"],
-                cameras_from=base,
-                edit_part=SCALED_PART.get(source, 2) if kind == "scale_part" else None,
-                **EDIT_KINDS[kind],
-                **synth_source(source),
-            ),
-            progress=False,
-        )
-    return syn
+        return work / "synth"
+    part = SCALED_PART.get(source, 2) if kind == "scale_part" else None
+    return gt_edit_capture(
+        source, work, kind, size, views, edit=["geometric"], edit_part=part, **EDIT_KINDS[kind]
+    )
 
 
 def run_method(method, run, syn, k, cfg, name):

@@ -73,7 +73,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_objects import GRID_OBJECTS, case_name, synth_source  # noqa: E402
+from bench_objects import GRID_OBJECTS, case_name, gt_edit_capture, synth_source  # noqa: E402
 
 VARIANTS = {
     "ours": {},
@@ -167,29 +167,11 @@ def prepare_object(
 
 def gt_edit(source: str, work: Path, kind: str, size: int, views: int) -> Path:
     """The synth folder of the object's GT texture edit `kind`: work/synth for hue, else
-    work/gt_KIND rendered with the base capture's cameras (so one template serves every kind;
-    reused when its edit.json exists)."""
-    from recon.synth import SynthConfig, synthesize
-
-    base = work / "synth"
+    `gt_edit_capture`'s."""
     if kind == "hue":
-        return base
-    syn = work / f"gt_{kind}"
-    if not (gt_dir(syn) / "edit.json").is_file():
-        synthesize(
-            SynthConfig(
-                out=syn,
-                views=views,
-                width=size,
-                height=size,
-                edit=["texture"],
-                cameras_from=base,
-                **kind_options(case_name(source), kind),
-                **synth_source(source),
-            ),
-            progress=False,
-        )
-    return syn
+        return work / "synth"
+    options = kind_options(case_name(source), kind)
+    return gt_edit_capture(source, work, kind, size, views, edit=["texture"], **options)
 
 
 def changed_pixels(syn: Path, name: str) -> np.ndarray:

@@ -43,3 +43,27 @@ def synth_source(name: str) -> dict:
     if name in MESHES:
         return {"mesh": MESHES[name]}
     return {"procedural": name}
+
+
+def gt_edit_capture(source: str, work: Path, kind: str, size: int, views: int, **edit) -> Path:
+    """work/gt_KIND: the case's object rendered again with a GT edit (`edit`: SynthConfig
+    options, e.g. edit=["geometric"], edit_plane=[...]) and the cameras of the base capture
+    work/synth, so one template serves every edit kind; reused when its edit.json exists."""
+    from recon.synth import SynthConfig, synthesize
+
+    syn = work / f"gt_{kind}"
+    done = [syn / "edits" / name / "edit.json" for name in edit.get("edit", [])]
+    if not done or not all(path.is_file() for path in done):
+        synthesize(
+            SynthConfig(
+                out=syn,
+                views=views,
+                width=size,
+                height=size,
+                cameras_from=work / "synth",
+                **edit,
+                **synth_source(source),
+            ),
+            progress=False,
+        )
+    return syn

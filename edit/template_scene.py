@@ -90,9 +90,8 @@ class TemplateScene(Scene):
             from recon.fit import template_proxy
 
             self.run.require("proxy_mesh")
-            m = self.run.read_proxy(
-                template_proxy(self.run)
-            )  # the one the template was fitted around
+            # the proxy the template was fitted around
+            m = self.run.read_proxy(template_proxy(self.run))
             self._mesh = (np.asarray(m.vertices).copy(), np.asarray(m.triangles).copy())
         return self._mesh
 

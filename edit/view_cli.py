@@ -56,7 +56,6 @@ def edit_view_index(run, edit: str | None, frames) -> int | None:
 
 def viewer_scene(run_dir, edit=None, strength=1.0, colors=True, device="auto"):
     """The `ViewerScene` of a run (and edit): meshes, frustums, view direction."""
-
     from edit.scene import load_scene
     from recon.rundir import RunDir
     from render.viewer import build_scene

@@ -34,6 +34,7 @@ The stage is idempotent: the same source with the same options is skipped unless
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import re
 import shutil
@@ -177,14 +178,22 @@ def ingest_capture(capture: Path, run: RunDir, cfg: IngestConfig | None = None) 
             f"--out {run.root} and the capture {capture} overlap: write the run to a folder "
             "outside the capture (inputs are never modified)"
         )
-    new_run = not run.root.exists()
-    with lock_folder(run.root, f"run {run.root}"):
-        try:
-            return _ingest(capture, run, cfg, t0)
-        except SineError:
-            if new_run:  # a capture refused half-way leaves no run behind
-                shutil.rmtree(run.root, ignore_errors=True)
-            raise
+    with removed_if_refused(run.root), lock_folder(run.root, f"run {run.root}"):
+        return _ingest(capture, run, cfg, t0)
+
+
+@contextlib.contextmanager
+def removed_if_refused(root: Path, new: bool | None = None):
+    """For the block that ingests a capture into the run folder `root`: when the folder is `new`
+    (default: it does not exist yet) and the block ends on a user error (a capture refused
+    half-way), the folder is removed again, so no half-made run is left behind."""
+    new = not Path(root).exists() if new is None else new
+    try:
+        yield
+    except SineError:
+        if new:
+            shutil.rmtree(root, ignore_errors=True)
+        raise
 
 
 def _ingest(capture: Path, run: RunDir, cfg: IngestConfig, t0: float) -> dict:

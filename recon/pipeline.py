@@ -11,7 +11,6 @@ after it. The per-stage results become `recon_report.json`.
 from __future__ import annotations
 
 import dataclasses
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -846,25 +845,21 @@ def run_recon(capture: Path | None, run: RunDir, cfg: ReconConfig, ingest_cfg=No
     validate(cfg)
     ingest_cfg = validate(ingest_cfg or IngestConfig())
     require_directory(run.root, "--out")
-    new_run = not run.root.exists()
+    new_run = not run.root.exists()  # before the lock makes the folder
     with lock_folder(run.root, f"run {run.root}"):
         return _recon(capture, run, cfg, ingest_cfg, new_run)
 
 
 def _recon(capture: Path | None, run: RunDir, cfg: ReconConfig, ingest_cfg, new_run) -> dict:
-    from recon.ingest import ingest_capture
+    from recon.ingest import ingest_capture, removed_if_refused
 
     for folder in (run.root, run.images, run.masks, run.depth):  # writes a kill cut short
         remove_partial_writes(folder, recursive=False)
     pipe = Pipeline(run, cfg, force=ingest_cfg.force, ignore_poses=ingest_cfg.ignore_poses)
     if capture is not None:
         t0 = time.perf_counter()
-        try:
+        with removed_if_refused(run.root, new_run):  # later stages' failures keep their run
             summary = ingest_capture(capture, run, ingest_cfg)
-        except SineError:
-            if new_run:  # a capture refused half-way leaves no run behind
-                shutil.rmtree(run.root, ignore_errors=True)
-            raise
         seconds = time.perf_counter() - t0
         if not summary.get("skipped") or not pipe._done("ingest"):
             pipe.drop_given_inputs()

@@ -125,13 +125,14 @@ class RunDir:
         """A SineError when `out` would write over what the run is made of (its images, masks,
         cameras, proxy, template, features or edits): outputs go elsewhere."""
         out, root = Path(out).resolve(), self.root.resolve()
-        if out == root or root not in out.parents:
-            if out == root:
-                raise SineError(f"{option} {out} is the run directory itself: give another path")
+        if out == root:
+            raise SineError(f"{option} {out} is the run directory itself: give another path")
+        if root not in out.parents:
             return
-        first = out.relative_to(root).parts[0]
+        parts = out.relative_to(root).parts
+        first = parts[0]
         managed = {"images", "masks", "depth", "template", "features", "edits", "sfm", "labels"}
-        if first in managed or (len(out.relative_to(root).parts) == 1 and out.exists()):
+        if first in managed or (len(parts) == 1 and out.exists()):
             raise SineError(
                 f"{option} {out} would overwrite the run's own {first}: write it elsewhere"
             )

@@ -313,45 +313,23 @@ def check_kills(reference: Reference, base, kinds: tuple[str, ...]) -> list[Kill
     return points
 
 
-@pytest.mark.slow
-def test_recon_after_kill(references, base):
-    """A random kill point, and one in the normalize stage: after it kept two depth maps aside
-    and rewrote the first of them in the run's units, before it recorded itself as done."""
-    check_kills(references["recon"], base, ("start", "at recon.pipeline:write_depth 4"))
+# the kill points of each stage (see `kill_and_rerun`): recon also inside its normalize stage,
+# after it kept two depth maps aside and rewrote the first of them in the run's units (before
+# it recorded itself as done); the geometric edit also while its second checkpoint is written
+# (the temporary file complete, not yet renamed onto checkpoint.pt)
+KILL_POINTS = {
+    "recon": ("start", "at recon.pipeline:write_depth 4"),
+    "fit": ("start", "checkpoint"),
+    "features": ("start", "checkpoint"),
+    "geometry": ("start", "checkpoint", "at torch:save 2"),
+    "texture": ("start", "checkpoint"),
+    "hybrid": ("start", "checkpoint"),
+    "render": ("start", "start"),
+    "export": ("start", "start"),
+}
 
 
 @pytest.mark.slow
-def test_fit_resumes_after_kill(references, base):
-    check_kills(references["fit"], base, ("start", "checkpoint"))
-
-
-@pytest.mark.slow
-def test_features_resume_after_kill(references, base):
-    check_kills(references["features"], base, ("start", "checkpoint"))
-
-
-@pytest.mark.slow
-def test_geometry_edit_resumes_after_kill(references, base):
-    """A random kill point, one after the first checkpoint, and one while the second checkpoint
-    is being written (its temporary file complete, not yet renamed onto checkpoint.pt)."""
-    check_kills(references["geometry"], base, ("start", "checkpoint", "at torch:save 2"))
-
-
-@pytest.mark.slow
-def test_texture_edit_resumes_after_kill(references, base):
-    check_kills(references["texture"], base, ("start", "checkpoint"))
-
-
-@pytest.mark.slow
-def test_hybrid_edit_resumes_after_kill(references, base):
-    check_kills(references["hybrid"], base, ("start", "checkpoint"))
-
-
-@pytest.mark.slow
-def test_render_after_kill(references, base):
-    check_kills(references["render"], base, ("start", "start"))
-
-
-@pytest.mark.slow
-def test_export_after_kill(references, base):
-    check_kills(references["export"], base, ("start", "start"))
+@pytest.mark.parametrize("stage", list(KILL_POINTS))
+def test_a_stage_killed_then_run_again_equals_an_uninterrupted_run(references, base, stage):
+    check_kills(references[stage], base, KILL_POINTS[stage])
