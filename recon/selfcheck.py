@@ -103,13 +103,19 @@ def silhouette_consistency(
     """Per view IoU [N] of its mask with the silhouette of the visual hull of all views, the
     silhouette kept within the mask grown by one pixel: with one view allowed to disagree, the
     hull may overshoot a view's own mask (wherever only that view carves), which says nothing
-    about the poses; a hull that does not fill the mask does."""
+    about the poses; a hull that does not fill the mask does. The silhouette is first shrunk by
+    the one pixel the carving grew every mask by (`hull_silhouettes`), so that an object of thin
+    parts, all outline, is not scored by that margin."""
     cams, small = small_views(cameras, masks, width)
     sils = hull_silhouettes(cams, small, resolution)
     kernel = np.ones((3, 3), np.uint8)
     return np.array(
         [
-            mask_iou(m, s & (cv2.dilate(m.astype(np.uint8), kernel) > 0))
+            mask_iou(
+                m,
+                (cv2.erode(s.astype(np.uint8), kernel) > 0)
+                & (cv2.dilate(m.astype(np.uint8), kernel) > 0),
+            )
             for m, s in zip(small, sils, strict=True)
         ]
     )
