@@ -67,6 +67,8 @@ VARIANTS = {
     "lift_image": {"lift_plane": "image"},  # handles keep their camera depth (before session 8)
     "seed_1": {"seed": 1},  # ours with another seed: the run-to-run spread
     "gp_all": {"prior_vertices": "all"},  # L_gp on every vertex of the prior mesh (the paper's)
+    "lift_axes": {"lift_plane": "axes"},  # handles moved along the object axis that explains them
+    "axes_symmetric": {"lift_plane": "axes", "symmetric": True},
 }
 
 

@@ -53,7 +53,7 @@ from edit import geometry_losses as losses
 from edit.edit_inputs import difference_region, read_region, read_target
 from edit.editing_field import EditingField, combine, edited_query, warp_vertices
 from edit.editing_scene import edited_sampler, scene_from_folder
-from edit.shape_prior import PriorMesh, build_prior_mesh
+from edit.shape_prior import PriorMesh, build_prior_mesh, object_axes
 from edit.template_scene import load_template_scene
 from recon.fit import load_fitted, make_sampler
 from recon.rundir import RunDir
@@ -170,8 +170,10 @@ class GeometryEditConfig(LoopOptions):
         "the plane a handle's image motion is lifted into: 'upright' (through the vertex, facing "
         "the camera, containing the scene's up axis: vertical image motion becomes vertical "
         "motion, as a photo of an upright object is read) or 'image' (parallel to the image: "
-        "the vertex keeps its camera depth)",
-        choices=["upright", "image"],
+        "the vertex keeps its camera depth); 'axes': along the one object axis (up, or the "
+        "proxy's longer or shorter horizontal axis) whose image explains the handle's motion, "
+        "else as 'upright'",
+        choices=["upright", "image", "axes"],
     )
     gate: bool = option(
         True,
@@ -235,6 +237,7 @@ def prepare(
     prior = None
     if cfg.method == "ours":
         depth = MeshRaycaster((vertices, triangles)).depth(camera)
+        up = run.load_cameras().up
         prior = build_prior_mesh(
             camera,
             vertices,
@@ -248,7 +251,8 @@ def prepare(
             cfg.visibility_tol,
             cfg.symmetric,
             cfg.arap_iterations,
-            up=run.load_cameras().up if cfg.lift_plane == "upright" else None,
+            up=None if cfg.lift_plane == "image" else up,
+            axes=object_axes(vertices, up) if cfg.lift_plane == "axes" else None,
         )
         save_prior(out, prior, run)
     write_image(out / "target.png", tgt.rgb)

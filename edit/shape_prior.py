@@ -157,6 +157,51 @@ def back_project(camera: Camera, pixels: np.ndarray, z: np.ndarray) -> np.ndarra
     return cam @ c2w[:3, :3].T + c2w[:3, 3]
 
 
+def object_axes(vertices: np.ndarray, up: np.ndarray, min_ratio: float = 1.1) -> np.ndarray:
+    """[K, 3] unit directions an edit most likely moves the object along: the scene's `up` [3],
+    and the two principal axes of the shape [V, 3] in the horizontal plane when its horizontal
+    spread is clearly longer one way (std ratio >= `min_ratio`; a round shape has no such axes)."""
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    flat = vertices - vertices.mean(axis=0)
+    flat = flat - np.outer(flat @ up, up)
+    _, spread, axes = np.linalg.svd(flat, full_matrices=False)  # the third axis is `up`
+    if spread[1] <= 0 or spread[0] / spread[1] < min_ratio:
+        return up[None]
+    return np.stack([up, axes[0], axes[1]])
+
+
+def lift_to_axes(
+    camera: Camera,
+    pixels: np.ndarray,
+    points: np.ndarray,
+    axes: np.ndarray,
+    max_residual: float = 0.25,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Moves each point [N, 3] along the one direction of `axes` [K, 3] whose image best explains
+    its 2D motion to `pixels` [N, 2] (the point on the axis line nearest the pixel's ray).
+
+    -> (moved points [N, 3], explained [N] bool: the best axis's reprojection error is within
+    `max_residual` x the motion; the others are unusable, left in place)."""
+    uv, _ = camera.project(points)
+    motion = np.linalg.norm(pixels - uv, axis=1)  # [N]
+    rays = back_project(camera, pixels, np.ones(len(pixels))) - camera.center  # [N, 3]
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    best = np.full(len(points), np.inf)
+    moved = points.copy()
+    for axis in axes:
+        # nearest points of the lines points + t axis and centre + s ray
+        w = points - camera.center
+        b = rays @ axis
+        denom = 1.0 - b**2
+        t = (b * (w * rays).sum(axis=1) - w @ axis) / np.maximum(denom, 1e-9)
+        t[denom <= 1e-9] = 0.0  # the axis along the ray: no motion it can explain
+        candidate = points + t[:, None] * axis
+        err = np.linalg.norm(camera.project(candidate)[0] - pixels, axis=1)
+        better = err < best
+        best[better], moved[better] = err[better], candidate[better]
+    return moved, best <= max_residual * np.maximum(motion, 1e-9)
+
+
 @dataclass
 class Handles:
     ids: np.ndarray  # [H] vertex ids that move
@@ -176,6 +221,7 @@ def lift_handles(
     contour_px: float = 3.0,
     min_motion_px: float = 1.0,
     up: np.ndarray | None = None,
+    axes: np.ndarray | None = None,
 ) -> Handles:
     """Handles and anchors from the correspondences of view `camera` (see the module doc).
 
@@ -204,6 +250,9 @@ def lift_handles(
     ids, dst = ids[lands & moves], dst[lands & moves]
     anchors = np.concatenate([np.nonzero(~in_region)[0], still])
     targets = lift_to_planes(camera, dst, vertices[ids], lifting_normal(camera, up))
+    if axes is not None:
+        along, explained = lift_to_axes(camera, dst, vertices[ids], axes)
+        targets[explained] = along[explained]
     return Handles(ids, targets, np.unique(anchors))
 
 
@@ -309,6 +358,7 @@ def build_prior_mesh(
     symmetric: bool = False,
     iterations: int = 50,
     up: np.ndarray | None = None,
+    axes: np.ndarray | None = None,
 ) -> PriorMesh:
     """The whole prior: correspondences -> handles -> (mirror) -> ARAP (see the module doc).
     `up` [3]: the scene's up axis for the upright lifting (None: handles keep their depth)."""
@@ -323,6 +373,7 @@ def build_prior_mesh(
         target_alpha,
         visibility_tol,
         up=up,
+        axes=axes,
     )
     if len(handles.ids) == 0:
         raise SineError(

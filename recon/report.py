@@ -18,7 +18,7 @@ from tqdm import tqdm
 from recon.rundir import RunDir
 from recon.selfcheck import CheckThresholds, check_proxy
 from render.io import contact_sheet, read_image, read_mask, write_image, write_json
-from render.metrics import mask_iou
+from render.metrics import mask_iou, mask_iou_within
 from render.raycast import MeshRaycaster
 
 STAGE_KEYS_SKIP = ("done", "seconds", "auto")
@@ -85,19 +85,21 @@ def write_report(
     cams = run.load_cameras().frames
     masks = [read_mask(run.mask_path(c.name)) for c in cams]
     sils = proxy_silhouettes(run, cams)
-    ious = []
+    ious, near_ious = [], []
     for mask, sil in tqdm(list(zip(masks, sils, strict=True)), desc="report", unit="view"):
         ious.append(mask_iou(mask, sil))
+        near_ious.append(mask_iou_within(mask, sil))
     images = [read_image(run.image_path(c.name)) for c in cams]
     sheet_path = run.root / "recon_contact_sheet.png"
     write_image(sheet_path, np.clip(outline_sheet(images, masks, sils, columns), 0, 1))
 
-    proxy_check = check_proxy([c.name for c in cams], ious, thresholds or CheckThresholds())
+    proxy_check = check_proxy([c.name for c in cams], near_ious, thresholds or CheckThresholds())
     report = flat_report(state)
     report.update(
         {
             "silhouette_iou_mean": float(np.mean(ious)),
             "silhouette_iou_min": float(np.min(ious)),
+            "silhouette_iou_within_pixel_mean": float(np.mean(near_ious)),
             "silhouette_iou_per_view": {
                 c.name: round(i, 4) for c, i in zip(cams, ious, strict=True)
             },

@@ -240,13 +240,15 @@ def check_poses(
 
 
 def check_proxy(names: list[str], ious: list[float], thresholds: CheckThresholds) -> Verdict:
-    """The proxy mesh's silhouettes against the masks (per view IoU, as the report computes)."""
+    """The proxy mesh's silhouettes against the masks (per view IoU within a pixel,
+    `render.metrics.mask_iou_within`, as the report computes it)."""
     ious_arr = np.asarray(ious, dtype=np.float64)
     order = np.argsort(ious_arr)
     reasons = []
     if ious_arr.mean() < thresholds.min_silhouette_iou:
         reasons.append(
-            f"the proxy mesh's silhouettes match the masks poorly (mean IoU {ious_arr.mean():.2f} "
+            f"the proxy mesh's silhouettes match the masks poorly (mean IoU within a pixel "
+            f"{ious_arr.mean():.2f} "
             f"< {thresholds.min_silhouette_iou:.2f}; worst "
             f"{', '.join(f'{names[i]} {ious_arr[i]:.2f}' for i in order[:3])})"
         )

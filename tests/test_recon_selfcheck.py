@@ -165,3 +165,17 @@ def test_recon_verdict_ok_on_true_poses(capture, tmp_path):
     assert report["self_check_poses"]["hull_iou_mean"] > 0.85
     assert report["self_check_report"]["verdict"] == "ok"
     require_trusted_poses(run)
+
+
+def test_mask_iou_within_a_pixel_forgives_an_outline_not_a_shift():
+    from render.metrics import mask_iou, mask_iou_within
+
+    a = np.zeros((40, 40), bool)
+    a[10:20, 10:20] = True  # 100 pixels
+    grown = np.zeros_like(a)
+    grown[9:21, 9:21] = True  # 144: one pixel all around
+    assert mask_iou(a, grown) == pytest.approx(100 / 144)
+    assert mask_iou_within(a, grown) == 1.0
+    shifted = np.zeros_like(a)
+    shifted[10:20, 15:25] = True  # 5 pixels right: 50 shared; 40 of each farther than a pixel
+    assert mask_iou_within(a, shifted) == pytest.approx(50 / (50 + 40 + 40))
