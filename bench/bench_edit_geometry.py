@@ -59,10 +59,7 @@ VARIANTS = {
     "symmetric": {"symmetric": True},
     "band_005": {"band_width": 0.05},  # the old default band; now: the template fit's band
     "w_reg_1": {"w_reg": 1.0},  # the paper's weight (the default is 3)
-    "gp_constant": {"gp_fade": 0.0},  # the paper's constant L_gp weight (the default again)
-    "gp_fade_05": {"gp_fade": 0.5},  # L_gp gone after half of the steps (session 7's default)
     "gp_003": {"w_gp": 0.003},  # L_gp ten times weaker
-    "gp_fade_025": {"gp_fade": 0.25},  # L_gp gone after the first quarter of the steps
     "gp_chamfer": {"prior_match": "chamfer"},  # the paper's two-way Chamfer, not vertex pairs
     "lift_image": {"lift_plane": "image"},  # handles keep their camera depth (before session 8)
     "seed_1": {"seed": 1},  # ours with another seed: the run-to-run spread

@@ -39,8 +39,8 @@ LIFTINGS = {
 
 def prior_rows(work: Path, kind: str) -> list[tuple[str, float, float, float]]:
     import trimesh
-
     from bench_edit_geometry import gt_move
+
     from edit.shape_prior import build_prior_mesh, object_axes
     from recon.fit import template_proxy
     from recon.rundir import RunDir

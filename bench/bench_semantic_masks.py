@@ -49,7 +49,6 @@ def main() -> None:
     ap.add_argument("--feature-iterations", type=int, default=600, help="feature field steps")
     ap.add_argument("--short-side", type=int, default=224, help="DINO input short side")
     ap.add_argument("--crop", default="object", choices=["object", "image"], help="DINO input")
-    ap.add_argument("--geo-feat", action="store_true", help="feature MLP also sees geo_feat")
     ap.add_argument("--space", default="centred", choices=["centred", "dino"], help="mask space")
     ap.add_argument(
         "--rules",
@@ -115,7 +114,6 @@ def main() -> None:
         iterations=args.feature_iterations,
         short_side=args.short_side,
         crop=args.crop,
-        geo_feat=args.geo_feat,
     )
     feat_metrics = stage("features", timings, distill_features, run.root, feat_cfg, progress=False)
 
@@ -167,8 +165,7 @@ def main() -> None:
     print(
         f"\nsemantic masks: {args.object} {args.views} views {args.size}x{args.size}, painted = GT "
         f"part eroded {args.erode} px, space {args.space}, render scale {args.render_scale}, DINO "
-        f"{args.crop} crop short side "
-        f"{args.short_side}, geo_feat {args.geo_feat}, K=15, 1000 samples (threshold rule: 0.5)"
+        f"{args.crop} crop short side {args.short_side}, K=15, 1000 samples (threshold rule: 0.5)"
     )
     print(
         f"{'edit view':<10} {'part':<8} {'rule':<16} {'painted':>8} {'IoU test':>9} "

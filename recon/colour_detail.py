@@ -84,12 +84,10 @@ def build_detail_cache(
     pool,
     rays: torch.Tensor,
     behind: torch.Tensor,
-    codes: torch.Tensor | None = None,
     chunk: int = 16384,
 ) -> DetailCache:
     """Samples, weights and colour logits of the frozen `field` along the pool's `rays` [R]
-    (indices into `pool`; `behind` [R, 3] what each composites over; `codes` [V, A] the
-    training views' appearance codes when the field has them)."""
+    (indices into `pool`; `behind` [R, 3] what each composites over)."""
     points, weights, logits, counts, opacity = [], [], [], [], []
     for first in range(0, len(rays), chunk):
         idx = rays[first : first + chunk]
@@ -101,10 +99,9 @@ def build_detail_cache(
         w = volume.render_weights(sigma.view(t.shape), t, delta=delta)  # [r, S]
         ray, sample = torch.nonzero(w > MIN_WEIGHT, as_tuple=True)  # ray-major order
         kept_geo = geo.view(*t.shape, -1)[ray, sample]  # [k, F]
-        code = codes[pool.view[idx][ray]] if codes is not None and codes.numel() else None
         points.append(x[ray, sample])
         weights.append(w[ray, sample])
-        logits.append(field.color_logits(kept_geo, d[ray], code, detail=False))
+        logits.append(field.color_logits(kept_geo, d[ray], detail=False))
         counts.append(torch.bincount(ray, minlength=len(idx)))
         opacity.append(volume.opacity(w))
     count = torch.cat(counts)

@@ -41,7 +41,6 @@ from recon.training import (
     exponential_decay,
     loop_options,
 )
-from render import volume
 from render.configs import from_json, option, to_dict, to_json, validate
 from render.device import pick_device, torch_threads
 from render.errors import SineError
@@ -240,25 +239,12 @@ class FitConfig(LoopOptions):
     )
     uniform_coarse: int = option(64, "stratified coarse samples (uniform sampler)", low=1)
     mask_weight: float = option(0.1, "weight of the opacity-vs-mask BCE loss (0: off)", low=0.0)
-    distortion_weight: float = option(
-        0.0,
-        "weight of mip-NeRF 360's distortion loss, distances in band widths (2 x --band-width): "
-        "pulls each ray's weight into one short stretch, against haze in front of surfaces "
-        "(0: off)",
-        low=0.0,
-    )
     sh_degree: int = option(
         4,
         "spherical-harmonics degree of the view direction fed to the colour (1: colour does "
         "not depend on the view, for matte objects; 4: shiny ones)",
         low=1,
         high=4,
-    )
-    appearance_dim: int = option(
-        0,
-        "per-view appearance code length (0: off); for lights that turn with the camera "
-        "(turntables): held-out views use the codes of their nearest training views",
-        low=0,
     )
     refine_proxy: float | None = option(
         None,
@@ -291,37 +277,16 @@ class FitConfig(LoopOptions):
     )
     train_supersample: int | None = option(
         None,
-        "train on the box filter of s x s rays per pixel (the mean of the sub-pixel rays' "
-        "colours against the pixel, the way a camera integrates a pixel); --batch-rays counts "
-        "the rays, so a batch holds fewer pixels. None: 2 on the pixels of the masks' edge "
-        "(--supersample-pixels edge) when every view's mask came with the capture (renders, "
+        "train the pixels of the masks' edge (within one pixel of the mask's boundary, or of "
+        "the proxy's silhouette without masks: where a pixel is part object, part background) "
+        "on the box filter of s x s rays (the mean of the sub-pixel rays' colours against the "
+        "pixel, the way a camera integrates a pixel); --batch-rays counts the rays, so a batch "
+        "holds fewer pixels. None: 2 when every view's mask came with the capture (renders, "
         "RGBA alpha: the boundary is where a pixel is part object; toycar/spot/figurine +0.8 / "
         "+1.3 / +0.2-0.6 dB held-out object PSNR), else 1 (masks the recon estimated: the "
         "dinosaur and the temple lose 0.1-0.2 dB with it)",
         low=1,
         high=4,
-    )
-    supersample_pixels: str | None = option(
-        None,
-        "which training pixels get the s x s box filter: all; error (only the part of each "
-        "batch drawn by error: silhouettes and fine texture, where a pixel's content varies; "
-        "the uniform part keeps one ray per pixel); or edge (pixels within one pixel of the "
-        "mask's boundary, or of the proxy's silhouette without masks: where a pixel is part "
-        "object, part background). None: edge when --train-supersample is chosen by the "
-        "masks (None), else all",
-        choices=["all", "error", "edge"],
-    )
-    supersample_from: float = option(
-        0.0,
-        "fraction of the steps after which --train-supersample applies (before it: one ray "
-        "through each pixel's centre, more pixels per batch to learn fine texture from)",
-        low=0.0,
-        high=1.0,
-    )
-    pixel_jitter: bool = option(
-        False,
-        "train on rays through random points of their pixels instead of the centres (a pixel "
-        "integrates light over its area)",
     )
     error_sampling: float = option(
         0.5,
@@ -358,7 +323,7 @@ class FitConfig(LoopOptions):
 def resolve_preset(cfg: FitConfig, run: RunDir | None = None) -> FitConfig:
     """`cfg` with the options left at None taken from its preset (and, for `refine_proxy`,
     from how the run's proxy was made: recon_report.json's depth_source; for
-    `train_supersample` and `supersample_pixels`, from where its masks came from:
+    `train_supersample`, from where its masks came from:
     `masks_from_capture`; for `max_resolution`, from the training cameras:
     `pixel_resolution`)."""
     preset = PRESETS.get(cfg.preset)
@@ -382,10 +347,6 @@ def resolve_preset(cfg: FitConfig, run: RunDir | None = None) -> FitConfig:
     if cfg.train_supersample is None:
         exact = masks_from_capture(report)
         chosen["train_supersample"] = EDGE_SUPERSAMPLE if exact else 1
-        if cfg.supersample_pixels is None:
-            chosen["supersample_pixels"] = "edge" if exact else "all"
-    elif cfg.supersample_pixels is None:
-        chosen["supersample_pixels"] = "all"
     if cfg.max_resolution is None:
         known = run is not None and run.cameras.is_file()
         train = [c for c in run.load_cameras().frames if c.split == "train"] if known else []
@@ -452,18 +413,9 @@ class RayPool:
 
 def pixel_axes(cam) -> np.ndarray:
     """[3, 3]: the world vectors of one pixel step in u and in v on the camera's z = 1 plane,
-    and the camera's z axis (for `jitter_in_pixels`)."""
+    and the camera's z axis."""
     rot = cam.camera_to_world[:3, :3]
     return np.stack([rot[:, 0] / cam.fx, rot[:, 1] / cam.fy, rot[:, 2]])
-
-
-def jitter_in_pixels(dirs: torch.Tensor, axes: torch.Tensor, generator) -> torch.Tensor:
-    """Unit directions through pixel centres [n, 3] -> unit directions through a uniformly
-    random point of the same pixels [n, 3]; axes [n, 3, 3] from `pixel_axes`."""
-    on_plane = dirs / (dirs * axes[:, 2]).sum(-1, keepdim=True)  # [n, 3] at camera z = 1
-    shift = torch.rand(len(dirs), 2, generator=generator).to(dirs) - 0.5  # [n, 2] pixels
-    moved = on_plane + shift[:, :1] * axes[:, 0] + shift[:, 1:] * axes[:, 1]
-    return moved / moved.norm(dim=-1, keepdim=True)
 
 
 def subpixel_dirs(dirs: torch.Tensor, axes: torch.Tensor, s: int) -> torch.Tensor:
@@ -610,7 +562,7 @@ def make_sampler(
     return BandSampler(ProxyRaycaster(mesh, inflate=width), cfg.band_samples, cfg.coarse_samples)
 
 
-def field_config(cfg: FitConfig, n_views: int = 0) -> TemplateFieldConfig:
+def field_config(cfg: FitConfig) -> TemplateFieldConfig:
     grid = HashGridConfig(
         n_levels=cfg.levels, log2_table=cfg.log2_table, max_resolution=cfg.max_resolution
     )
@@ -622,14 +574,8 @@ def field_config(cfg: FitConfig, n_views: int = 0) -> TemplateFieldConfig:
             base_resolution=min(DETAIL_BASE_RESOLUTION, cfg.max_resolution),
             max_resolution=cfg.max_resolution,
         )
-    views = n_views if cfg.appearance_dim else 0
     return TemplateFieldConfig(
-        grid=grid,
-        density_hidden=cfg.density_hidden,
-        sh_degree=cfg.sh_degree,
-        appearance_dim=cfg.appearance_dim,
-        appearance_views=views,
-        detail=detail,
+        grid=grid, density_hidden=cfg.density_hidden, sh_degree=cfg.sh_degree, detail=detail
     )
 
 
@@ -727,18 +673,6 @@ def field_average(field: TemplateField, window: float, iterations: int):
     )
 
 
-def store_appearance(field: TemplateField, codes: torch.Tensor, cameras) -> None:
-    """Keeps the fitted codes [V, A] and their views' directions in the field; the default
-    code becomes their mean (a neutral light)."""
-    centers = torch.tensor(
-        np.stack([c.camera_to_world[:3, 3] for c in cameras]), dtype=torch.float32
-    )
-    with torch.no_grad():
-        field.view_codes.copy_(codes)
-        field.view_dirs.copy_(torch.nn.functional.normalize(centers, dim=1))
-        field.appearance.copy_(codes.mean(0))
-
-
 # ---- metrics ------------------------------------------------------------------------------
 def evaluate(
     field,
@@ -757,11 +691,7 @@ def evaluate(
 
     field.eval()
     psnrs, ssims, samples, obj_psnrs, obj_ssims = [], [], [], [], []
-    neutral = field.appearance.clone() if field.cfg.appearance_dim else None
     for i, (cam, image, mask) in enumerate(views):
-        if neutral is not None:  # the light of the nearest training views
-            center = torch.as_tensor(cam.camera_to_world[:3, 3], device=neutral.device)
-            field.appearance.copy_(field.code_for_camera(center))
         out = render_image(cam, field, sampler, background, chunk, device, supersample)
         pred = np.clip(out["rgb"], 0.0, 1.0)
         psnrs.append(psnr(pred, image))
@@ -775,8 +705,6 @@ def evaluate(
                 Path(preview_dir) / (Path(cam.name).stem + ".png"),
                 np.concatenate([pred, image], axis=1),
             )
-    if neutral is not None:
-        field.appearance.copy_(neutral)
     field.train()
     if not psnrs:
         return {}
@@ -805,7 +733,6 @@ def _train_detail(
     pool,
     background,
     behind_capture,
-    codes,
     phases: dict,
     stop_at,
 ) -> dict:
@@ -833,8 +760,7 @@ def _train_detail(
     behind = background().detach().expand(len(rays), 3)
     if behind_capture:  # outside the masks, the captured pixel itself (as in the main steps)
         behind = torch.where(pool.mask[rays, None] < 0.5, pool.rgb[rays], behind)
-    view_codes = codes.detach() if cfg.appearance_dim else None
-    cache = build_detail_cache(field, sampler, pool, rays, behind, view_codes, cfg.eval_chunk)
+    cache = build_detail_cache(field, sampler, pool, rays, behind, cfg.eval_chunk)
     cache_seconds = time.perf_counter() - t_cache
     held = check_views(pool.view[rays], len(pool.pixel_axes))  # every training view
     check_end = cfg.iterations + round(cfg.detail_check * cfg.detail_steps)
@@ -901,6 +827,7 @@ RECORDED_BEFORE = {
     "density_hidden": 128,
     "refine_min_component": 0.02,
 }
+
 
 # Settings that do not change the result: a checkpoint made with other values still resumes.
 _RUNTIME_KEYS = RUNTIME_KEYS + (
@@ -979,9 +906,8 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     pool = build_ray_pool(train_views, sampler, device)
 
     torch.manual_seed(cfg.seed)
-    field = TemplateField(field_config(cfg, len(train_views))).to(device)
+    field = TemplateField(field_config(cfg)).to(device)
     field.detail_active = False  # the colour-detail branch learns after the main steps
-    codes = torch.nn.Parameter(torch.zeros(len(train_views), cfg.appearance_dim, device=device))
     background = Background(bg_color, learnable=bg_learn).to(device)
     if cfg.background == "capture" and not pool.has_masks:
         raise SineError(
@@ -1000,8 +926,6 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         groups.append(
             {"params": list(background.parameters()), "lr": cfg.lr_mlp, "name": "background"}
         )
-    if cfg.appearance_dim:
-        groups.append({"params": [codes], "lr": cfg.lr_mlp, "name": "appearance"})
     # the main steps decay over cfg.iterations; the detail branch's (no gradient before) after
     main_decay = exponential_decay(cfg.lr_final_factor, cfg.iterations)
     detail_decay = exponential_decay(cfg.lr_final_factor, cfg.detail_steps)
@@ -1016,7 +940,6 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         "field": field,
         "background": background,
         "ray_errors": pool.errors,
-        "codes": codes,
         "proxy": proxy_state,
         "phases": phases,
     }
@@ -1027,50 +950,36 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     selector = RaySelector(pool, cfg.error_sampling, generator)
 
     sub = cfg.train_supersample**2  # rays per box-filtered training pixel
-    box_from = round(cfg.supersample_from * cfg.iterations) if sub > 1 else cfg.iterations + 1
-    box_part = cfg.error_sampling if cfg.supersample_pixels == "error" else 1.0
-    by_edge = cfg.supersample_pixels == "edge"
     average_from = cfg.iterations // 2 if averaged is not None else None
 
     def step(i: int) -> dict[str, torch.Tensor]:
         if average_from is not None and i >= average_from:  # the weights after i steps
             averaged.update_parameters(field)
-        boxed_fraction = box_part if i >= box_from else 0.0
-        if by_edge:
-            boxed_fraction = edge_share[0] if i >= box_from else 0.0
+        boxed_fraction = edge_share[0] if sub > 1 else 0.0
         n_pixels = max(1, round(cfg.batch_rays / (1 - boxed_fraction + boxed_fraction * sub)))
         idx = selector.draw(n_pixels)  # uniform pixels first, then those drawn by error
-        n_boxed = round(len(idx) * boxed_fraction)
-        if by_edge and i >= box_from:  # the edge pixels last, boxed
+        n_boxed = 0
+        if sub > 1:  # the edge pixels last, boxed
             on_edge = pool.edge[idx]
             idx = torch.cat([idx[~on_edge], idx[on_edge]])
             n_boxed = int(on_edge.sum())
             edge_share[0] = n_boxed / len(idx)
         n_single = len(idx) - n_boxed
         dirs = pool.dirs[idx]  # [n, 3]
-        if cfg.pixel_jitter:  # the band of the centre ray holds: a pixel is << the band
-            dirs = jitter_in_pixels(dirs, pool.pixel_axes[pool.view[idx]], generator)
         rays = idx  # [r] the pool ray (pixel) of each ray rendered
-        if n_boxed:  # the sub-pixel rays share their pixel's band, like jittered ones
+        if n_boxed:  # the sub-pixel rays share their pixel's band (a pixel is << the band)
             boxed = idx[n_single:]
             sub_dirs = subpixel_dirs(
                 dirs[n_single:], pool.pixel_axes[pool.view[boxed]], cfg.train_supersample
             )
             dirs = torch.cat([dirs[:n_single], sub_dirs])
             rays = torch.cat([idx[:n_single], boxed.repeat_interleave(sub)])
-        query = field
-        if cfg.appearance_dim:  # every pool ray hits: samples come ray by ray, in order
-            ray_codes = codes[pool.view[rays]]  # [r, A]
-
-            def query(x, d):
-                return field(x, d, ray_codes.repeat_interleave(len(x) // len(ray_codes), 0))
-
         behind = background
         if behind_capture:  # [r, 3]: outside the masks, the captured pixel itself
             outside = pool.mask[rays, None] < 0.5
             behind = torch.where(outside, pool.rgb[rays], background()[None].expand(len(rays), 3))
         out = render_rays(
-            query,
+            field,
             pool.origins[rays],
             dirs,
             sampler,
@@ -1078,7 +987,6 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
             hits=pool.hits[rays],
             perturb=True,
             generator=generator,
-            keep_weights=cfg.distortion_weight > 0,
         )
         if n_boxed:  # the box filter of each boxed pixel's rays
             for key in ("rgb", "opacity"):
@@ -1092,10 +1000,6 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
             acc = out["opacity"].clamp(1e-5, 1 - 1e-5)
             bce = torch.nn.functional.binary_cross_entropy(acc, pool.mask[idx])
             terms["mask"] = cfg.mask_weight * bce
-        if cfg.distortion_weight > 0 and "weights" in out:
-            scale = 2.0 * cfg.band_width  # distances in band widths
-            spread = volume.distortion(out["weights"], out["t"] / scale, out["delta"] / scale)
-            terms["distortion"] = cfg.distortion_weight * spread.mean()
         if background.learnable and len(pool.miss_rgb):
             j = torch.randint(len(pool.miss_rgb), (256,), generator=generator).to(device)
             terms["background"] = torch.mean((background()[None] - pool.miss_rgb[j]) ** 2)
@@ -1138,12 +1042,10 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
                     field.parameters(), averaged.module.parameters(), strict=True
                 ):
                     weights.copy_(average)
-    if cfg.appearance_dim:
-        store_appearance(field, codes.detach(), [cam for cam, _, _ in train_views])
     detail_stats = {}
     if cfg.detail_steps:
         detail_stats = _train_detail(
-            cfg, trainer, field, sampler, pool, background, behind_capture, codes, phases, stop_at
+            cfg, trainer, field, sampler, pool, background, behind_capture, phases, stop_at
         )
         if trainer.step < trainer.iterations:  # stopped early on purpose
             return {"step": trainer.step}

@@ -1,7 +1,6 @@
 """The DINO feature field (paper Sec. 3 / DESIGN.md section 7): a 3D point -> a feature vector.
 
-`FeatureField`: its own small hash grid (optionally concatenated with the frozen template's
-geometry feature) -> an MLP -> D channels, the coefficients of the DINO patch features in a PCA
+`FeatureField`: its own small hash grid -> an MLP -> D channels, the coefficients of the DINO patch features in a PCA
 basis (mean [C] + components [D, C], stored as buffers) fitted on the captures' foreground
 features. Rendered with the frozen template's density weights (same sampler) and composited with
 `render.volume.composite`; a pixel's feature is the composite divided by the opacity, decoded
@@ -35,20 +34,17 @@ class FeatureFieldConfig:
     feature_dim: int = 384  # channels of the decoded (DINO) features
     hidden: int = 64  # hidden width of the MLP
     hidden_layers: int = 2  # hidden layers of the MLP
-    geo_feat_dim: int = 0  # > 0: the template's geometry feature is an extra input
     top_k: int = 8  # samples composited per ray (largest template weights), training = rendering
 
 
 class FeatureField(nn.Module):
-    """x [N, 3] (+ geo_feat [N, G]) -> PCA coefficients [N, D]; `decode` -> DINO features [.., C]."""
+    """x [N, 3] -> PCA coefficients [N, D]; `decode` -> DINO features [.., C]."""
 
     def __init__(self, cfg: FeatureFieldConfig | None = None):
         super().__init__()
         self.cfg = cfg = cfg or FeatureFieldConfig()
         self.grid = HashGrid(cfg.grid, bound=cfg.bound)
-        self.net = mlp(
-            self.grid.output_dim + cfg.geo_feat_dim, cfg.hidden, cfg.hidden_layers, cfg.out_dim
-        )
+        self.net = mlp(self.grid.output_dim, cfg.hidden, cfg.hidden_layers, cfg.out_dim)
         self.register_buffer("mean", torch.zeros(cfg.feature_dim))  # [C]
         eye = torch.eye(cfg.out_dim, cfg.feature_dim)
         self.register_buffer("components", eye)  # [D, C], orthonormal rows
@@ -66,11 +62,8 @@ class FeatureField(nn.Module):
         """PCA coefficients [..., D] -> DINO features [..., C]."""
         return coeffs @ self.components + self.mean
 
-    def forward(self, x: torch.Tensor, geo_feat: torch.Tensor | None = None) -> torch.Tensor:
-        h = self.grid(x)  # [N, L*F]
-        if self.cfg.geo_feat_dim:
-            h = torch.cat([h, geo_feat.to(h)], dim=-1)
-        return self.net(h)  # [N, D]
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(self.grid(x))  # [N, D]
 
     def param_groups(self, lr_grid: float, lr_mlp: float, weight_decay_mlp: float = 1e-6):
         """Adam groups: the hash table (tiny eps, no weight decay) and the MLP."""
@@ -107,7 +100,6 @@ class TopKSamples:
     ray: torch.Tensor  # [r] index of the ray among those cast
     points: torch.Tensor  # [r, k, 3]
     weights: torch.Tensor  # [r, k]
-    geo: torch.Tensor | None  # [r, k, G] template geometry features (if asked for)
     opacity: torch.Tensor  # [r] sum of all the ray's weights
 
 
@@ -118,7 +110,6 @@ def top_k_samples(
     origins: torch.Tensor,
     dirs: torch.Tensor,
     k: int,
-    with_geo: bool = False,
     chunk: int = 4096,
 ) -> TopKSamples:
     """Rays [R, 3] -> top-k samples of the rays that need the field (the sampler's hits)."""
@@ -129,37 +120,24 @@ def top_k_samples(
         sel = idx[s : s + chunk]
         t, delta = sampler.sample(hits[sel], False)  # [c, S]
         p = origins[sel, None, :] + dirs[sel, None, :] * t[..., None]  # [c, S, 3]
-        sigma, geo = template.geometry(p.reshape(-1, 3))
+        sigma, _ = template.geometry(p.reshape(-1, 3))
         w = volume.render_weights(sigma.view(t.shape), t, delta=delta)  # [c, S]
         wk, ik = torch.topk(w, min(k, t.shape[1]), dim=1)  # [c, k]
         pk = torch.gather(p, 1, ik[..., None].expand(-1, -1, 3))
-        gk = None
-        if with_geo:
-            g = geo.view(*t.shape, -1)
-            gk = torch.gather(g, 1, ik[..., None].expand(-1, -1, g.shape[-1]))
-        parts.append((pk, wk, gk, volume.opacity(w)))
+        parts.append((pk, wk, volume.opacity(w)))
     if not parts:
         z = origins.new_zeros
-        return TopKSamples(idx, z(0, k, 3), z(0, k), z(0, k, 0) if with_geo else None, z(0))
-    return TopKSamples(
-        idx,
-        torch.cat([q[0] for q in parts]),
-        torch.cat([q[1] for q in parts]),
-        torch.cat([q[2] for q in parts]) if with_geo else None,
-        torch.cat([q[3] for q in parts]),
-    )
+        return TopKSamples(idx, z(0, k, 3), z(0, k), z(0))
+    points, weights, opacity = (torch.cat(q) for q in zip(*parts, strict=True))
+    return TopKSamples(idx, points, weights, opacity)
 
 
 def composite_features(
-    features: FeatureField,
-    points: torch.Tensor,
-    weights: torch.Tensor,
-    geo: torch.Tensor | None = None,
+    features: FeatureField, points: torch.Tensor, weights: torch.Tensor
 ) -> torch.Tensor:
     """Top-k samples (points [r, k, 3], weights [r, k]) -> rendered coefficients [r, D]:
     composite(weights, field(points)) / sum of the weights."""
-    g = geo.reshape(-1, geo.shape[-1]) if geo is not None and features.cfg.geo_feat_dim else None
-    f = features(points.reshape(-1, 3), g).view(*weights.shape, -1)  # [r, k, D]
+    f = features(points.reshape(-1, 3)).view(*weights.shape, -1)  # [r, k, D]
     comp = volume.composite(weights, {"feat": f})["feat"]  # [r, D]
     return comp / volume.opacity(weights).clamp_min(1e-3)[:, None]
 
@@ -185,19 +163,18 @@ def render_feature_map(
     device = device or features.mean.device
     top_k = top_k or features.cfg.top_k
     o, d = (torch.from_numpy(a).to(device) for a in camera.rays())  # [R, 3]
-    s = top_k_samples(template, sampler, o, d, top_k, bool(features.cfg.geo_feat_dim), chunk)
+    s = top_k_samples(template, sampler, o, d, top_k, chunk)
     with torch.no_grad():
         coeffs = torch.zeros(len(o), features.cfg.out_dim, device=device)  # [R, D]
         surface = torch.zeros(len(o), 3, device=device)  # [R, 3]
         for a in range(0, len(s.ray), chunk):
             b = slice(a, a + chunk)
-            geo = s.geo[b] if s.geo is not None else None
             points = s.points[b]  # [c, k, 3]
             kept = volume.opacity(s.weights[b]).clamp_min(1e-3)[:, None]  # [c, 1]
             surface[s.ray[b]] = (s.weights[b, :, None] * points).sum(dim=1) / kept
             if warp is not None:
                 points = warp(points.reshape(-1, 3)).view(points.shape)
-            coeffs[s.ray[b]] = composite_features(features, points, s.weights[b], geo)
+            coeffs[s.ray[b]] = composite_features(features, points, s.weights[b])
         acc = torch.zeros(len(o), device=device).index_put((s.ray,), s.opacity)  # [R]
         fg = acc >= min_opacity
         out = features.decode(coeffs) if decode else coeffs

@@ -64,11 +64,9 @@ def render_rays(
     hits: RayHits | None = None,
     perturb: bool = False,
     generator: torch.Generator | None = None,
-    keep_weights: bool = False,
 ) -> dict[str, torch.Tensor]:
     """origins, dirs [R, 3] -> {"rgb" [R, 3] over background, "opacity" [R], "depth" [R],
-    other channels [R, C], "hit" [R] bool, "samples" (field queries made)}; with
-    `keep_weights`, also the hit rays' samples: "weights", "t", "delta" [r, S].
+    other channels [R, C], "hit" [R] bool, "samples" (field queries made)}.
 
     "depth" is the expected ray distance normalised by the opacity (0 where nothing is hit).
     Differentiable w.r.t. the field; chunking is the caller's business (see `render_rays_chunked`).
@@ -111,8 +109,6 @@ def render_rays(
     out["opacity"] = out["opacity"].index_put((idx,), acc)
     out["depth"] = out["depth"].index_put((idx,), depth)
     out["samples"] = torch.tensor(n_coarse + t.numel())
-    if keep_weights:
-        out.update(weights=w, t=t, delta=delta)
     return out
 
 

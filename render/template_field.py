@@ -2,16 +2,8 @@
 
 TemplateField: hash grid (16 levels x 2 features) -> density head (1 hidden layer of 128) ->
 sigma (trunc_exp) + a geometry feature; colour head (2 hidden layers of 64) on
-[geometry feature, SH degree 4 of the view direction, appearance code] -> rgb (sigmoid). The
-geometry feature is exposed (`geo_feat`) so a DINO feature head can be attached later.
-
-Appearance (`appearance_dim` > 0): on a turntable the lights stay with the camera while the
-object turns, so a surface point's shading changes from view to view. Each training view gets a
-learned code (GLO, as nerfacto's appearance embedding) that the colour head reads; geometry
-never sees it. `appearance` [A] is the code every query uses unless one is passed (the mean of
-the training views' codes after the fit: a neutral light), and `code_for_camera` blends the
-codes of the training views nearest in direction, which is what held-out views are rendered
-with (a turntable's light changes smoothly with the angle).
+[geometry feature, SH degree 4 of the view direction] -> rgb (sigmoid). The geometry feature
+is exposed (`geo_feat`): a texture edit's F_dT reads it too (`--template-feature`).
 
 Colour detail (`detail` set): a second hash grid, read only by the colour, whose features go
 through a small MLP (with the direction encoding, not the geometry feature: with it the branch
@@ -56,13 +48,11 @@ class TemplateFieldConfig:
 
     grid: HashGridConfig = field(default_factory=lambda: HashGridConfig(log2_table=15))
     bound: float = 1.0  # the grid covers [-bound, bound]^3 (run units: object in the unit sphere)
-    geo_feat_dim: int = 15  # geometry feature passed to the colour head (and a feature head)
+    geo_feat_dim: int = 15  # geometry feature passed to the colour head (and to F_dT)
     density_hidden: int = 128  # hidden width of the density head (1 hidden layer)
     color_hidden: int = 64  # hidden width of the colour head (2 hidden layers)
     sh_degree: int = 4  # spherical-harmonics degree of the direction encoding
     density_activation: str = "trunc_exp"  # trunc_exp | softplus
-    appearance_dim: int = 0  # per-view appearance code length (0: none)
-    appearance_views: int = 0  # training views with a code (their directions are stored)
     gather: str = "fused"  # hash-grid gather implementation (see render/hashgrid.py)
     detail: HashGridConfig | None = None  # the colour-detail grid (None: no detail branch)
     detail_hidden: int = 64  # hidden width of the colour-detail MLP (1 hidden layer)
@@ -86,13 +76,7 @@ class TemplateField(nn.Module):
         self.cfg = cfg = cfg or TemplateFieldConfig()
         self.grid = HashGrid(cfg.grid, bound=cfg.bound, gather=cfg.gather)
         self.density_net = mlp(self.grid.output_dim, cfg.density_hidden, 1, 1 + cfg.geo_feat_dim)
-        n_color_in = cfg.geo_feat_dim + cfg.sh_degree**2 + cfg.appearance_dim
-        self.color_net = mlp(n_color_in, cfg.color_hidden, 2, 3)
-        if cfg.appearance_dim:
-            a, v = cfg.appearance_dim, cfg.appearance_views
-            self.register_buffer("appearance", torch.zeros(a))  # [A] the code used by default
-            self.register_buffer("view_codes", torch.zeros(v, a))  # [V, A] fitted codes
-            self.register_buffer("view_dirs", torch.zeros(v, 3))  # [V, 3] unit camera centres
+        self.color_net = mlp(cfg.geo_feat_dim + cfg.sh_degree**2, cfg.color_hidden, 2, 3)
         self.detail_grid = self.detail_net = None
         # whether queries add the detail offset: off while `sine fit`'s main steps train (the
         # branch is learnt after them, on the frozen field), on for every fitted field
@@ -121,25 +105,17 @@ class TemplateField(nn.Module):
         return self.geometry(x)[0]
 
     def color(
-        self,
-        geo_feat: torch.Tensor,
-        d: torch.Tensor,
-        code: torch.Tensor | None = None,
-        x: torch.Tensor | None = None,
+        self, geo_feat: torch.Tensor, d: torch.Tensor, x: torch.Tensor | None = None
     ) -> torch.Tensor:
-        """geo_feat [N, F], d [N, 3], appearance code [N, A] (None: `self.appearance`), the
-        points x [N, 3] (needed with a detail branch) -> rgb [N, 3] in (0, 1)."""
-        return torch.sigmoid(self.color_logits(geo_feat, d, code, x, self.detail_active))
+        """geo_feat [N, F], d [N, 3], the points x [N, 3] (needed with a detail branch) -> rgb
+        [N, 3] in (0, 1)."""
+        return torch.sigmoid(self.color_logits(geo_feat, d, x, self.detail_active))
 
-    def color_logits(self, geo_feat, d, code=None, x=None, detail: bool = True) -> torch.Tensor:
+    def color_logits(self, geo_feat, d, x=None, detail: bool = True) -> torch.Tensor:
         """The colour before its sigmoid [N, 3] (arguments as `color`; `detail` False: without
         the detail branch's offset)."""
         sh = sh_encode(d, self.cfg.sh_degree)
-        parts = [geo_feat, sh]
-        if self.cfg.appearance_dim:
-            code = self.appearance.expand(len(d), -1) if code is None else code
-            parts.append(code)
-        logits = self.color_net(torch.cat(parts, dim=-1))
+        logits = self.color_net(torch.cat([geo_feat, sh], dim=-1))
         if detail and self.detail_grid is not None:
             if x is None:
                 raise ValueError("a field with colour detail needs the points for its colour")
@@ -151,26 +127,11 @@ class TemplateField(nn.Module):
         encoding [N, K]."""
         return self.detail_net(torch.cat([self.detail_grid(x), sh], dim=-1))
 
-    def forward(
-        self, x: torch.Tensor, d: torch.Tensor, code: torch.Tensor | None = None
-    ) -> dict[str, torch.Tensor]:
-        """x [N, 3], d [N, 3], optional appearance code [N, A] -> sigma, rgb, geo_feat."""
+    def forward(self, x: torch.Tensor, d: torch.Tensor) -> dict[str, torch.Tensor]:
+        """x [N, 3], d [N, 3] -> sigma, rgb, geo_feat."""
         sigma, geo = self.geometry(x)
-        rgb = torch.sigmoid(self.color_logits(geo, d, code, x, detail=self.detail_active))
+        rgb = torch.sigmoid(self.color_logits(geo, d, x, detail=self.detail_active))
         return {"sigma": sigma, "rgb": rgb, "geo_feat": geo}
-
-    def code_for_camera(self, center: torch.Tensor, k: int = 2) -> torch.Tensor:
-        """Appearance code [A] for a camera at `center` [3] (run units): the codes of the `k`
-        training views nearest in direction from the object's centre, weighted by 1 / angle
-        (a training view's own direction gives its own code)."""
-        direction = torch.nn.functional.normalize(center.float(), dim=0)
-        cos = (self.view_dirs @ direction).clamp(-1.0, 1.0)  # [V]
-        neg_angle, idx = torch.topk(-torch.arccos(cos), min(k, len(cos)))
-        angle = -neg_angle  # [k] ascending
-        if angle[0] < 1e-3:  # (float32 arccos is this coarse near 0) a training view itself
-            return self.view_codes[idx[0]].clone()
-        weights = 1.0 / angle
-        return (weights[:, None] * self.view_codes[idx]).sum(0) / weights.sum()
 
     def param_groups(self, lr_grid: float, lr_mlp: float, weight_decay_mlp: float = 1e-6):
         """Adam groups: the hash table (no weight decay, tiny eps) and the MLPs (without the

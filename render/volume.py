@@ -58,16 +58,6 @@ def expected_depth(weights: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return (weights * t).sum(dim=-1)
 
 
-def distortion(weights: torch.Tensor, t: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
-    """mip-NeRF 360's distortion loss per ray [R]: sum_ij w_i w_j |t_i - t_j| + 1/3 sum_i w_i^2
-    delta_i, from weights, sample distances and bin lengths [R, S]. Small when a ray's weight
-    sits in one short stretch (a surface), large for haze spread along the ray."""
-    spread = (
-        weights[..., :, None] * weights[..., None, :] * (t[..., :, None] - t[..., None, :]).abs()
-    )
-    return spread.sum(dim=(-1, -2)) + (weights**2 * delta).sum(dim=-1) / 3.0
-
-
 def over_background(rgb: torch.Tensor, acc: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
     """Composite a premultiplied colour [R, 3] with opacity [R] over a background [3] or [R, 3]."""
     return rgb + (1.0 - acc[..., None]) * background

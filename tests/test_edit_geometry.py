@@ -19,7 +19,7 @@ from edit import geometry_losses as L
 from edit.deformation import DeformationField
 from edit.edit_inputs import Target, difference_region, read_target
 from edit.editing_field import EditingField, combine, edited_query
-from edit.geometry_edit import GeometryEditConfig, prior_weight, run_geometry_edit
+from edit.geometry_edit import GeometryEditConfig, run_geometry_edit
 from edit.scene import load_scene
 from edit.shape_prior import (
     Handles,
@@ -75,13 +75,6 @@ def _linear(field: DeformationField, a: torch.Tensor) -> DeformationField:
 
 
 # ---- losses -------------------------------------------------------------------------------
-def test_prior_weight_fades_linearly_to_zero():
-    cfg = GeometryEditConfig(w_gp=0.03, gp_fade=0.5, iterations=600)
-    assert [prior_weight(cfg, k) for k in (0, 150, 300, 599)] == pytest.approx([0.03, 0.015, 0, 0])
-    constant = GeometryEditConfig(w_gp=0.03, gp_fade=0.0, iterations=600)
-    assert prior_weight(constant, 599) == 0.03
-
-
 def test_photometric_is_the_mean_squared_norm_over_rays():
     pred = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 0.0]])
     target = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])

@@ -376,22 +376,20 @@ def _grads(*modules) -> list[torch.Tensor]:
 
 
 @pytest.mark.parametrize(
-    "cond_dim, plain, head, part",
+    "cond_dim, head, part",
     [
-        (0, False, "residual", False),
-        (4, False, "residual", False),
-        (0, True, "residual", False),
-        (4, False, "affine", False),
-        (4, False, "affine", True),
+        (0, "residual", False),
+        (4, "residual", False),
+        (4, "affine", False),
+        (4, "affine", True),
     ],
 )
-def test_deferred_gradients_equal_direct_backpropagation(cond_dim, plain, head, part):
+def test_deferred_gradients_equal_direct_backpropagation(cond_dim, head, part):
     """Two images through F_dT (position only, or reading per-sample features) and the
-    compositor, an image-space loss mixing all pixels (plain: also a loss on I_o + I_m before
-    the compositor, `--w-plain`): the parameter gradients of deferred back-propagation in tiles
-    of 4 px (halo 8, F_dT on 5 samples at a time) equal those of direct back-propagation through
-    the whole images at once (either compositor head; the affine one also with the gate g and
-    the part's share P of I_o)."""
+    compositor, an image-space loss mixing all pixels: the parameter gradients of deferred
+    back-propagation in tiles of 4 px (halo 8, F_dT on 5 samples at a time) equal those of
+    direct back-propagation through the whole images at once (either compositor head; the
+    affine one also with the gate g and the part's share P of I_o)."""
     torch.manual_seed(0)
     texture, comp = TextureField(SMALL_GRID, cond_dim=cond_dim), Compositor(head=head)
     with torch.no_grad():  # leave the zero start so every parameter gets a gradient
@@ -409,8 +407,6 @@ def test_deferred_gradients_equal_direct_backpropagation(cond_dim, plain, head, 
         for leaf, g in zip(leaves, goal, strict=True):
             image = leaf["rgb"]  # [h, w, 3]
             total = total + ((image - g) ** 2).mean() + image.mean((0, 1)).pow(2).sum()
-            if plain:
-                total = total + ((leaf["plain"] - g) ** 2).mean()
         return total, None
 
     # the reference: I_m of every pixel at once, one compositor pass per image, one backward
@@ -422,12 +418,11 @@ def test_deferred_gradients_equal_direct_backpropagation(cond_dim, plain, head, 
         region = None if view.region is None else view.region.reshape(h, w)
         part_rgb = None if view.part_rgb is None else view.part_rgb.reshape(h, w, 3)
         images.append({"rgb": composite_hwc(comp, template_rgb, mod, region, part_rgb)})
-        images[-1]["plain"] = (template_rgb + mod).clamp(0, 1)
     loss_direct, _ = loss_fn(images)
     loss_direct.backward()
     direct = _grads(texture, comp)
     texture.zero_grad(), comp.zero_grad()
-    tiled = [edited_image(v, texture, comp, tile=4, chunk=5, plain=plain) for v in views]
+    tiled = [edited_image(v, texture, comp, tile=4, chunk=5) for v in views]
     assert len(tiled[0].pieces) == 4 * 3
     loss_deferred, _ = deferred_backward(tiled, loss_fn)
     deferred = _grads(texture, comp)

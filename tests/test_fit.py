@@ -12,7 +12,6 @@ import torch
 from recon.fit import (
     FitConfig,
     fit_template,
-    jitter_in_pixels,
     load_template,
     make_sampler,
     pixel_axes,
@@ -213,23 +212,6 @@ def test_object_metrics_on_hand_made_images():
     assert masked_ssim(wrong_background, gt, mask) < 0.95
 
 
-def test_jittered_rays_stay_inside_their_pixels_and_cover_them():
-    """Rays through pixel centres, jittered: each projects back into its own pixel (within
-    +-0.5 px of the centre), and the offsets spread uniformly over it (variance 1/12)."""
-    cam = Camera(40, 30, 55.0, 60.0, 21.0, 14.5, look_at(np.array([2.0, -1.0, 1.5]), np.zeros(3)))
-    centres = cam.pixel_grid()  # [N, 2]
-    origins, dirs = cam.rays(centres)
-    axes = torch.as_tensor(pixel_axes(cam), dtype=torch.float32).expand(len(dirs), 3, 3)
-    gen = torch.Generator().manual_seed(0)
-    moved = jitter_in_pixels(torch.from_numpy(dirs), axes, gen).numpy()
-    np.testing.assert_allclose(np.linalg.norm(moved, axis=1), 1.0, atol=1e-6)
-    pixels, _ = cam.project(origins + 2.0 * moved)
-    offset = pixels - centres  # [N, 2]
-    assert np.abs(offset).max() <= 0.5 + 1e-3
-    np.testing.assert_allclose(offset.var(axis=0), 1 / 12, rtol=0.1)
-    assert np.abs(offset.mean(axis=0)).max() < 0.02
-
-
 def test_subpixel_rays_hit_the_sub_pixel_centres():
     """2 x 2 sub-pixel rays project to the pixel centre +-0.25 px, u fastest, pixel by pixel:
     the ray layout `render_image(..., supersample=2)` box-filters."""
@@ -309,25 +291,6 @@ def test_max_resolution_matches_one_cell_to_a_pixel_at_the_object(tmp_path):
     run.save_cameras(CameraSet([cam(4.0, 400.0), cam(3.0, 300.0), cam(1.0, 400.0, "test")]))
     assert resolve_preset(FitConfig(), run).max_resolution == 200
     assert resolve_preset(FitConfig(max_resolution=64), run).max_resolution == 64
-
-
-def test_appearance_codes_are_fitted_and_blended_for_held_out_views(tiny_run, tmp_path):
-    run = _copy(tiny_run, tmp_path / "run")
-    cfg = FitConfig(iterations=30, appearance_dim=4, **TINY)
-    metrics = fit_template(run.root, cfg, progress=False)
-    assert np.isfinite(metrics["heldout_psnr"])
-    field, _ = load_template(run.root)
-    codes, dirs = field.view_codes, field.view_dirs
-    assert codes.shape == (8, 4) and codes.abs().sum() > 0  # 8 training views, learnt
-    torch.testing.assert_close(field.appearance, codes.mean(0))
-    torch.testing.assert_close(dirs.norm(dim=1), torch.ones(8))
-    # a training view's own direction gives its own code; halfway between two views, the mean
-    torch.testing.assert_close(field.code_for_camera(3 * dirs[2]), codes[2])
-    halfway = torch.nn.functional.normalize(dirs[2] + dirs[3], dim=0)
-    torch.testing.assert_close(field.code_for_camera(halfway), (codes[2] + codes[3]) / 2)
-    x, d = torch.zeros(2, 3), torch.tensor([[0.0, 0.0, 1.0]] * 2)
-    by_code = field(x, d, codes[:2])["rgb"]
-    assert not torch.allclose(by_code[0], by_code[1])  # the colour head reads the code
 
 
 def test_refine_proxy_mid_fit_replaces_the_band_and_resumes_exactly(tmp_path):
@@ -534,22 +497,16 @@ def test_the_masks_edge_is_box_filtered_by_default_only_when_the_capture_brought
     run = RunDir(tmp_path / "run")
     run.root.mkdir()
 
-    def chosen(cfg: FitConfig) -> tuple[int, str]:
-        out = resolve_preset(cfg, run)
-        return out.train_supersample, out.supersample_pixels
+    def chosen(cfg: FitConfig) -> int:
+        return resolve_preset(cfg, run).train_supersample
 
-    assert chosen(FitConfig()) == (1, "all")  # no report: nothing known
-    for given, estimated, expected in (
-        (36, 0, (2, "edge")),
-        (30, 6, (1, "all")),
-        (0, 36, (1, "all")),
-    ):
+    assert chosen(FitConfig()) == 1  # no report: nothing known
+    for given, estimated, expected in ((36, 0, 2), (30, 6, 1), (0, 36, 1)):
         write_json(run.recon_report, {"masks_given": given, "masks_automatic": estimated})
         assert chosen(FitConfig()) == expected
     write_json(run.recon_report, {"masks_given": 36, "masks_automatic": 0})
-    assert chosen(FitConfig(train_supersample=1)) == (1, "all")  # the user's choice stands
-    assert chosen(FitConfig(train_supersample=2)) == (2, "all")  # as before the rule
-    assert chosen(FitConfig(supersample_pixels="error")) == (2, "error")
+    assert chosen(FitConfig(train_supersample=1)) == 1  # the user's choice stands
+    assert chosen(FitConfig(train_supersample=3)) == 3
 
 
 def test_silhouette_edge_marks_the_rings_on_both_sides_of_the_boundary():
@@ -566,7 +523,7 @@ def test_silhouette_edge_marks_the_rings_on_both_sides_of_the_boundary():
 
 
 def test_box_filter_on_silhouette_pixels_only(tiny_run, tmp_path, monkeypatch):
-    """--supersample-pixels edge: only the batch's pixels on the mask's boundary get 2 x 2 rays,
+    """--train-supersample 2: only the batch's pixels on the mask's boundary get 2 x 2 rays,
     and the fit learns the sphere."""
     import recon.fit
 
@@ -585,7 +542,7 @@ def test_box_filter_on_silhouette_pixels_only(tiny_run, tmp_path, monkeypatch):
     monkeypatch.setattr(recon.fit.RaySelector, "draw", draw)
     monkeypatch.setattr(recon.fit, "subpixel_dirs", counted)
     run = _copy(tiny_run, tmp_path / "run")
-    cfg = FitConfig(iterations=200, train_supersample=2, supersample_pixels="edge", **TINY)
+    cfg = FitConfig(iterations=200, train_supersample=2, **TINY)
     metrics = fit_template(run.root, cfg, progress=False)
     assert len(boxed) == 200 and boxed == [n for n in drawn if n]
     assert 0 < min(boxed) and max(boxed) < 256  # some pixels of each batch, never all
@@ -593,26 +550,6 @@ def test_box_filter_on_silhouette_pixels_only(tiny_run, tmp_path, monkeypatch):
     # held-out object pixels (28.8 whole image) against the one-ray fit's 20.0 (26.9), whose
     # silhouette pixels stay hard-edged.
     assert metrics["heldout_psnr_object"] > 22.5 and metrics["heldout_psnr"] > 25.0
-
-
-def test_box_filtered_training_fits_the_pixels_it_averages(tiny_run, tmp_path, monkeypatch):
-    """--train-supersample 2 from half-way: steps 100..199 render 2 x 2 rays for each pixel of
-    a batch of 256 / 4 and train on their mean; the fit reaches the one-ray fit's held-out
-    floor (the test above: 25 dB)."""
-    import recon.fit
-
-    calls = []
-
-    def counted(dirs, axes, s):
-        calls.append((len(dirs), s))
-        return subpixel_dirs(dirs, axes, s)
-
-    monkeypatch.setattr(recon.fit, "subpixel_dirs", counted)
-    run = _copy(tiny_run, tmp_path / "run")
-    cfg = FitConfig(iterations=200, train_supersample=2, supersample_from=0.5, **TINY)
-    metrics = fit_template(run.root, cfg, progress=False)
-    assert calls == [(64, 2)] * 100
-    assert metrics["heldout_psnr"] > 25.0
 
 
 def test_the_saved_field_is_the_moving_average_of_the_last_steps(tiny_run, tmp_path):

@@ -64,13 +64,3 @@ def test_sh_orthonormal_on_sphere():
     torch.testing.assert_close(gram, torch.eye(16, dtype=torch.float64), atol=0.03, rtol=0)
     # l=1 band: Y_1^0 = sqrt(3/(4 pi)) z
     torch.testing.assert_close(y[:, 2], math.sqrt(3 / (4 * math.pi)) * d[:, 2])
-
-
-def test_distortion_by_hand():
-    """One sample of weight 1 in a bin of length 0.3: only the self term, 0.3 / 3 = 0.1. Two
-    point samples (bins of length 0) of weight 0.5 one unit apart: 2 * 0.5 * 0.5 * 1 = 0.5;
-    the same weight in one place costs nothing."""
-    w = torch.tensor([[1.0, 0.0], [0.5, 0.5], [0.5, 0.5]])
-    t = torch.tensor([[2.0, 3.0], [2.0, 3.0], [2.0, 2.0]])
-    delta = torch.tensor([[0.3, 0.3], [0.0, 0.0], [0.0, 0.0]])
-    torch.testing.assert_close(volume.distortion(w, t, delta), torch.tensor([0.1, 0.5, 0.0]))
