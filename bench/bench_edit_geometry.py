@@ -61,11 +61,8 @@ VARIANTS = {
     "w_reg_1": {"w_reg": 1.0},  # the paper's weight (the default is 3)
     "gp_003": {"w_gp": 0.003},  # L_gp ten times weaker
     "gp_chamfer": {"prior_match": "chamfer"},  # the paper's two-way Chamfer, not vertex pairs
-    "lift_image": {"lift_plane": "image"},  # handles keep their camera depth (before session 8)
     "seed_1": {"seed": 1},  # ours with another seed: the run-to-run spread
     "gp_all": {"prior_vertices": "all"},  # L_gp on every vertex of the prior mesh (the paper's)
-    "lift_axes": {"lift_plane": "axes"},  # handles moved along the object axis that explains them
-    "axes_symmetric": {"lift_plane": "axes", "symmetric": True},
 }
 
 

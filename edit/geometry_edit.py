@@ -156,16 +156,6 @@ class GeometryEditConfig(LoopOptions):
         0.02, "depth tolerance (run units) of visible proxy vertices", low=0
     )
     arap_iterations: int = option(50, "ARAP iterations of the shape prior", low=1)
-    lift_plane: str = option(
-        "upright",
-        "the plane a handle's image motion is lifted into: 'upright' (through the vertex, facing "
-        "the camera, containing the scene's up axis: vertical image motion becomes vertical "
-        "motion, as a photo of an upright object is read) or 'image' (parallel to the image: "
-        "the vertex keeps its camera depth); 'axes': along the one object axis (up, or the "
-        "proxy's longer or shorter horizontal axis) whose image explains the handle's motion, "
-        "else as 'upright'",
-        choices=["upright", "image", "axes"],
-    )
     gate: bool = option(
         True,
         "restrict the editing field to near what the shape prior moved (beyond the paper: the "
@@ -242,8 +232,8 @@ def prepare(
             cfg.visibility_tol,
             cfg.symmetric,
             cfg.arap_iterations,
-            up=None if cfg.lift_plane == "image" else up,
-            axes=object_axes(vertices, up) if cfg.lift_plane == "axes" else None,
+            up=up,
+            axes=object_axes(vertices, up),
         )
         save_prior(out, prior, run)
     write_image(out / "target.png", tgt.rgb)
@@ -336,7 +326,7 @@ def with_fit_band(cfg: GeometryEditConfig, fit_cfg) -> GeometryEditConfig:
 
 # Options added after edits were recorded whose default is not what those edits did: a run
 # recorded without them counts as having had these values (so it is redone, not reused).
-RECORDED_BEFORE = {"lift_plane": "image", "prior_vertices": "all"}
+RECORDED_BEFORE = {"prior_vertices": "all"}
 
 
 def geometry_training(

@@ -7,10 +7,14 @@ From the template's rendering of the edited view and the user's target we build 
    nearest point of the target's silhouette (flow is weak where the object grows into a plain
    background; the contour is not).
 2. **Lifting to 3D**: the proxy vertices visible in the edited view (projected depth agrees with
-   the ray-cast depth of the proxy) and inside the editable region become handles: the vertex
-   moves to where the ray of its corresponded pixel crosses the upright plane through it (facing
-   the camera, containing the scene's up axis: an image-vertical drag lifts to a vertical move,
-   as a photo of an upright object is read), or, without an up axis, it keeps its camera depth.
+   the ray-cast depth of the proxy) and inside the editable region become handles. A handle
+   moves along the one object axis (the scene's up axis, or the proxy's longer or shorter
+   horizontal axis) whose image explains its 2D motion: a car seen from three quarters and made
+   longer grows along its length, not across the view. A motion no axis explains (a drag along a
+   diagonal) moves it to where the ray of its corresponded pixel crosses the upright plane
+   through it (facing the camera, containing the up axis: an image-vertical drag lifts to a
+   vertical move, as a photo of an upright object is read), or, without an up axis, at its
+   camera depth.
    Vertices that project outside the region are anchored where they are (hidden ones too);
    hidden ones behind the region are free, so the far side of the edited part follows.
 3. **ARAP**: Open3D `deform_as_rigid_as_possible` deforms the proxy so that handles reach their
@@ -226,8 +230,9 @@ def lift_handles(
     """Handles and anchors from the correspondences of view `camera` (see the module doc).
 
     Visible vertices inside `region` [H, W] bool whose corresponded pixel moved by more than
-    `min_motion_px` follow it (handles) in the upright plane through them when the scene's `up`
-    [3] is given, else at their camera depth (`lifting_normal`). Every other vertex whose
+    `min_motion_px` follow it (handles): along the one of `axes` [K, 3] that explains the motion
+    (`lift_to_axes`), else in the upright plane through them when the scene's `up` [3] is given,
+    else at their camera depth (`lifting_normal`). Every other vertex whose
     projection falls outside the region is an anchor, hidden or not: the region's prism along the
     view is the only space the edit may change, and a hidden side left free would swing about the
     visible one. The rest (hidden behind the region, or visible in it with sub-pixel motion: flow
@@ -361,7 +366,9 @@ def build_prior_mesh(
     axes: np.ndarray | None = None,
 ) -> PriorMesh:
     """The whole prior: correspondences -> handles -> (mirror) -> ARAP (see the module doc).
-    `up` [3]: the scene's up axis for the upright lifting (None: handles keep their depth)."""
+    `up` [3]: the scene's up axis for the upright lifting (None: handles keep their depth);
+    `axes` [K, 3]: the object's axes a handle moves along when one explains it (`object_axes`;
+    None: the planes only)."""
     flow = dense_flow(template_rgb, template_alpha, target_rgb, target_alpha)
     handles = lift_handles(
         camera,
