@@ -6,7 +6,8 @@
 
 For each object: a synthetic turntable (`sine synth`), `sine recon` (known poses) and `sine fit`
 (defaults) once; then for each GT edit kind (EDIT_KINDS: `vertical`, the part above a horizontal
-plane stretched 1.5x upwards; `sideways`, a plane with a horizontal normal; `tilted`, a plane
+plane stretched 1.5x upwards; `sideways`, a plane with a horizontal normal; `one_side`, the
+other horizontal normal: one side of a left-right symmetric object pushed out; `tilted`, a plane
 at 45 degrees; `scale_part`, one part scaled 1.3x about its centre) the GT edit rendered with
 the same cameras, and every method edits from ONE view: the target is the GT edited image of
 the training view where the edit changes the silhouette most (its mask is the target's
@@ -63,6 +64,10 @@ VARIANTS = {
     "gp_chamfer": {"prior_match": "chamfer"},  # the paper's two-way Chamfer, not vertex pairs
     "seed_1": {"seed": 1},  # ours with another seed: the run-to-run spread
     "gp_all": {"prior_vertices": "all"},  # L_gp on every vertex of the prior mesh (the paper's)
+    # the grouped ablation (bench/MECHANISMS.md section 5): each beyond-paper group switched off
+    "gp_paper": {"prior_vertices": "all", "prior_match": "chamfer"},  # the paper's L_gp
+    "no_gate": {"gate": False},  # L_reg alone keeps the rest unchanged
+    "no_warmup": {"warmup_steps": 0},
 }
 
 
@@ -297,6 +302,9 @@ EDIT_KINDS = {
     "vertical": {},
     # the part beyond x = 0.2 stretched 1.5x sideways (a plane with a horizontal normal)
     "sideways": {"edit_plane": [1.0, 0.0, 0.0, 0.2]},
+    # the part beyond y = 0.2 stretched 1.5x sideways: one side of a left-right symmetric
+    # object (the toycar, the mug) pushed out, the other left as it is
+    "one_side": {"edit_plane": [0.0, 1.0, 0.0, 0.2]},
     # the part beyond a plane tilted 45 degrees stretched 1.5x along its normal
     "tilted": {"edit_plane": [0.70710678, 0.0, 0.70710678, 0.2]},
     # one part (SCALED_PART, else the upper half of a mesh) scaled 1.3x about its centre
