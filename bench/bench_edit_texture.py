@@ -80,6 +80,12 @@ VARIANTS = {
     "naive": {"method": "naive"},
     "no_compositor": {"compositor": False},
     "template": None,  # no edit at all: what the template scores (context for the others)
+    # the grouped ablation (bench/MECHANISMS.md section 5): each beyond-paper group switched off
+    "no_fitted_transform": {"fit_transform": False, "quadratic_transform": False},
+    "residual_head": {"compositor_head": "residual"},  # also no part colour, no fitted transform
+    "no_mirroring": {"symmetric_auto": False, "keep_seen": False},
+    "no_gate_vote": {"gate_vote": False},
+    "no_mask_spatial": {"mask_spatial": 0.0},
 }
 
 
