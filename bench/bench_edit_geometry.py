@@ -408,6 +408,7 @@ def main() -> int:
 
     from edit.geometry_edit import GeometryEditConfig
     from edit.scene import load_scene
+    from render.errors import SineError
     from render.io import write_image, write_json
 
     args.out.mkdir(parents=True, exist_ok=True)
@@ -441,7 +442,13 @@ def main() -> int:
                 if args.iterations:
                     cfg.iterations = args.iterations
                 t1 = time.perf_counter()
-                m, scene = run_method(method, run, syn, k, cfg, f"{kind}_{method}")
+                try:
+                    m, scene = run_method(method, run, syn, k, cfg, f"{kind}_{method}")
+                except SineError as e:  # the method refuses this case: say so, go on
+                    print(
+                        json.dumps({"object": obj, "edit": kind, "method": method, "error": str(e)})
+                    )
+                    continue
                 seconds = m.get("total_seconds", time.perf_counter() - t1)
                 metrics, rows = score(run, syn, scene, template, views)
                 case = {
