@@ -125,8 +125,10 @@ def difference_region(
     changed = cv2.morphologyEx(changed, cv2.MORPH_OPEN, opened)
     if changed.sum() < 0.0005 * changed.size:
         raise SineError(
-            "nothing to edit: the target matches the template's rendering of this view; "
-            "edit the snapshot (`sine snapshot`) or make a target with `sine target`"
+            "nothing to edit: the target matches the template's rendering of this view (changes "
+            "narrower than 5 pixels are taken for the template's own rendering error); edit the "
+            "snapshot (`sine snapshot`) or make a target with `sine target`, or paint the part "
+            "that changed and give it with --region"
         )
     if follow_silhouette and sil_diff.any():
         # components of the change (bridged over a few pixels) that contain a silhouette change
