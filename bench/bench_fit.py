@@ -185,13 +185,17 @@ def print_row(r: dict, header: bool) -> None:
     if header:
         print(
             f"{'case':<9} {'variant':<14} {'obj PSNR':>8} {'PSNR':>6} {'SSIM':>6} {'steps':>6} "
-            f"{'train s':>7} {'rays/s':>7} {'smp/ray':>7} {'samples/s':>9} {'peak MB':>7}",
+            f"{'train s':>7} {'main s':>7} {'refine s':>8} {'detail s':>8} {'eval s':>6} "
+            f"{'total s':>7} {'rays/s':>7} {'smp/ray':>7} {'samples/s':>9} {'peak MB':>7}",
             flush=True,
         )
     print(
         f"{r['case']:<9} {r['variant']:<14} {r.get('heldout_psnr_object', float('nan')):>8.2f} "
         f"{r['heldout_psnr']:>6.2f} {r['heldout_ssim']:>6.3f} {r['iterations']:>6} "
-        f"{r['train_seconds']:>7.1f} {r['rays_per_second']:>7.0f} {r['samples_per_ray']:>7} "
+        f"{r['train_seconds']:>7.1f} {r.get('main_seconds', float('nan')):>7.1f} "
+        f"{r.get('refine_seconds', float('nan')):>8.1f} {r.get('detail_seconds', 0.0):>8.1f} "
+        f"{r.get('eval_seconds', float('nan')):>6.1f} {r.get('total_seconds', float('nan')):>7.1f} "
+        f"{r['rays_per_second']:>7.0f} {r['samples_per_ray']:>7} "
         f"{r.get('samples_per_second', 0):>9.0f} {r['peak_rss_mb']:>7.0f}",
         flush=True,
     )

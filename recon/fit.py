@@ -1014,6 +1014,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         if trainer.step < refine_at:  # stopped early on purpose
             return {"step": trainer.step}
         current = refined_proxy if proxy_state["refined"] else run.proxy_mesh
+        t_refine = time.perf_counter()
         mesh, stats, proxy_ious = refine_with_field(
             run, cfg, field, sampler, device, trainer.progress, current, proxy_ious
         )
@@ -1026,7 +1027,8 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         if "silhouette_iou_after" in stats:  # with masks: the IoU before round 1, after each
             history = proxy_state.get("silhouette_iou_rounds", [stats["silhouette_iou_before"]])
             stats["silhouette_iou_rounds"] = [*history, stats["silhouette_iou_after"]]
-        proxy_state.update(stats, refined=True, rounds=rounds)
+        spent = proxy_state.get("refine_seconds", 0.0) + time.perf_counter() - t_refine
+        proxy_state.update(stats, refined=True, rounds=rounds, refine_seconds=spent)
         trainer.checkpoint()  # the refined proxy and the rays cast against it go together
         field.train()
     if trainer.step < main_end:
@@ -1087,6 +1089,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
             "train_seconds": trainer.seconds,
             "main_seconds": main_seconds,
             **detail_stats,
+            "refine_seconds": proxy_state.get("refine_seconds", 0.0),
             "eval_seconds": time.perf_counter() - t_eval,
             "total_seconds": time.perf_counter() - t_start,
             "rays_per_second": rays_per_second,
