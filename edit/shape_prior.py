@@ -192,9 +192,9 @@ def lift_to_axes(
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     best = np.full(len(points), np.inf)
     moved = points.copy()
+    w = points - camera.center  # [N, 3]
     for axis in axes:
         # nearest points of the lines points + t axis and centre + s ray
-        w = points - camera.center
         b = rays @ axis
         denom = 1.0 - b**2
         t = (b * (w * rays).sum(axis=1) - w @ axis) / np.maximum(denom, 1e-9)
