@@ -68,6 +68,7 @@ VARIANTS = {
     "gp_paper": {"prior_vertices": "all", "prior_match": "chamfer"},  # the paper's L_gp
     "no_gate": {"gate": False},  # L_reg alone keeps the rest unchanged
     "no_warmup": {"warmup_steps": 0},
+    "gate_margin_04": {"gate_margin": 0.4},  # the gate reaching 0 twice as far from the moved part
 }
 
 
