@@ -27,6 +27,7 @@ from torch import nn
 from edit.compositor import Compositor, composite_hwc
 from edit.editing_field import EditingField, combine, edited_query, warp_vertices
 from edit.template_scene import Scene, TemplateScene, load_template_scene, radial_normals
+from recon.formats import check_format
 from recon.rundir import RunDir
 from render.errors import SineError
 from render.io import load_torch
@@ -42,7 +43,9 @@ def load_edit_field(edit_dir: Path, device) -> dict:
         raise SineError(
             f"{path} not found; run `sine edit` first (or it was interrupted: re-run it)"
         )
-    return load_torch(path, rebuild=edit_command(edit_dir))
+    data = load_torch(path, rebuild=edit_command(edit_dir))
+    check_format(data, path, "edit", edit_command(edit_dir))
+    return data
 
 
 def edit_command(edit_dir: Path) -> str:

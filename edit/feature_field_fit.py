@@ -29,6 +29,7 @@ import torch
 import torch.nn.functional as F
 
 from recon.fit import load_fitted, load_views, make_sampler
+from recon.formats import FORMAT_VERSIONS, check_format
 from recon.rundir import RunDir
 from recon.training import (
     RUNTIME_KEYS,
@@ -301,8 +302,7 @@ def load_feature_field(run_dir, device: torch.device | None = None) -> FeatureFi
     if not path.is_file():
         raise SineError(f"{path} not found; run `sine features {run.root}` first")
     data = load_torch(path, rebuild=f"`sine features {run.root} --force`")
-    if not isinstance(data.get("field_config"), str):
-        raise SineError(f"{path} is from an older version; run `sine features {run.root} --force`")
+    check_format(data, path, "features", f"`sine features {run.root} --force`")
     field = FeatureField(from_json(FeatureFieldConfig, data["field_config"]))
     field.load_state_dict(data["field"])
     return field.to(device or torch.device("cpu")).eval()
@@ -357,6 +357,7 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
         force=force,
         progress=progress,
         advice="lower learning rates (e.g. half of --lr-grid and --lr-mlp)",
+        format_version=FORMAT_VERSIONS["features"],
         defaults=to_dict(FeaturesConfig()),
         inputs=run.inputs("cameras.json", "images", "proxy_mesh.ply", "template/field.pt"),
         outputs=("field.pt",),
@@ -417,6 +418,7 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
     save_torch(
         trainer.work_dir / "field.pt",
         {
+            "format_version": FORMAT_VERSIONS["features"],
             "field_config": to_json(field.cfg),
             "field": field.state_dict(),
             "features_config": to_json(cfg),

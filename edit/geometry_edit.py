@@ -54,6 +54,7 @@ from edit.editing_scene import edited_sampler, scene_from_folder
 from edit.shape_prior import PriorMesh, build_prior_mesh, object_axes
 from edit.template_scene import load_template_scene
 from recon.fit import load_fitted, make_sampler
+from recon.formats import FORMAT_VERSIONS
 from recon.rundir import RunDir
 from recon.training import RUNTIME_KEYS as LOOP_RUNTIME_KEYS
 from recon.training import (
@@ -324,11 +325,6 @@ def with_fit_band(cfg: GeometryEditConfig, fit_cfg) -> GeometryEditConfig:
     return dataclasses.replace(cfg, band_width=float(fit_cfg.band_width))
 
 
-# Options added after edits were recorded whose default is not what those edits did: a run
-# recorded without them counts as having had these values (so it is redone, not reused).
-RECORDED_BEFORE = {"prior_vertices": "all"}
-
-
 def geometry_training(
     cfg: GeometryEditConfig,
     setup: EditSetup,
@@ -549,7 +545,8 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
         force=force,
         progress=progress,
         advice="a lower --lr-deform (or --lr-naive)",
-        defaults={**to_dict(GeometryEditConfig()), **RECORDED_BEFORE},
+        format_version=FORMAT_VERSIONS["edit"],
+        defaults=to_dict(GeometryEditConfig()),
         inputs=run.inputs(*EDIT_INPUTS),
         outputs=EDIT_OUTPUTS,
     )
@@ -580,11 +577,23 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
 
     # ---- save the result and score the edited view ----
     if cfg.method == "naive":
-        save_torch(work / "edit_field.pt", {"method": "naive", "field": field.state_dict()})
+        save_torch(
+            work / "edit_field.pt",
+            {
+                "format_version": FORMAT_VERSIONS["edit"],
+                "method": "naive",
+                "field": field.state_dict(),
+            },
+        )
     else:
         save_torch(
             work / "edit_field.pt",
-            {"method": "ours", "editing": editing.state_dict(), "band_width": cfg.band_width},
+            {
+                "format_version": FORMAT_VERSIONS["edit"],
+                "method": "ours",
+                "editing": editing.state_dict(),
+                "band_width": cfg.band_width,
+            },
         )
     scene = scene_from_folder(run, work, 1.0, device)
     rendered = scene.render_view(setup.camera)

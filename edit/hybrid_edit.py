@@ -72,6 +72,7 @@ from edit.texture_edit import (
     uses_part_colour,
     write_previews,
 )
+from recon.formats import FORMAT_VERSIONS
 from recon.rundir import RunDir
 from recon.training import Trainer, exponential_decay, loop_options
 from render.configs import to_dict, validate
@@ -207,11 +208,8 @@ def _edit(
         progress=progress,
         manual_backward=True,
         advice="lower learning rates (--lr-deform, --lr-grid, --lr-compositor)",
-        defaults={
-            **_options(GeometryEditConfig(), TextureEditConfig()),
-            **{f"geometry.{k}": v for k, v in geometry_edit.RECORDED_BEFORE.items()},
-            **{f"texture.{k}": v for k, v in texture_edit.RECORDED_BEFORE.items()},
-        },
+        format_version=FORMAT_VERSIONS["edit"],
+        defaults=_options(GeometryEditConfig(), TextureEditConfig()),
         inputs=run.inputs(*texture_edit.TEXTURE_INPUTS),
         outputs=EDIT_OUTPUTS,
     )
@@ -325,6 +323,7 @@ def _edit(
     save_torch(
         work / "edit_field.pt",
         {
+            "format_version": FORMAT_VERSIONS["edit"],
             "method": "hybrid",
             "band_width": float(gcfg.band_width),
             "geometry": {"editing": geo_editing.state_dict()},

@@ -126,6 +126,7 @@ from edit.texture_views import (
     scaled_camera,
 )
 from recon.fit import load_fitted, make_sampler
+from recon.formats import FORMAT_VERSIONS
 from recon.rundir import RunDir
 from recon.training import RUNTIME_KEYS as LOOP_RUNTIME_KEYS
 from recon.training import LoopOptions, Trainer, loop_options
@@ -422,25 +423,6 @@ def gate_resolution(cfg: TextureEditConfig, cameras) -> int:
     if cfg.gate_resolution:
         return max(2, cfg.gate_resolution)
     return int(np.clip(pixel_resolution(cameras), *GATE_RESOLUTION_AUTO))
-
-
-# Options added after edits were recorded whose default is not what those edits did: a run
-# recorded without them counts as having had these values (so it is redone, not reused).
-RECORDED_BEFORE = {
-    "compositor_head": "residual",
-    "template_feature": False,
-    "keep_seen": False,
-    "w_color": 0.0,
-    "reference_mask": "none",
-    "part_colour": False,
-    "gate_vote": False,
-    "mask_spatial": 0.0,
-    "fit_transform": False,
-    "quadratic_transform": False,
-    "fit_ridge": 1e-3,
-    "fitted_compositor_factor": 0.1,
-    "symmetric_auto": False,
-}
 
 
 def affine_with_gate(cfg: TextureEditConfig) -> bool:
@@ -782,7 +764,8 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
         progress=progress,
         manual_backward=cfg.method == "ours",
         advice="lower learning rates (--lr-grid, --lr-compositor, --lr-naive)",
-        defaults={**to_dict(TextureEditConfig()), **RECORDED_BEFORE},
+        format_version=FORMAT_VERSIONS["edit"],
+        defaults=to_dict(TextureEditConfig()),
         inputs=run.inputs(*TEXTURE_INPUTS),
         outputs=EDIT_OUTPUTS,
     )
@@ -814,11 +797,19 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
     from edit.editing_scene import scene_from_folder
 
     if cfg.method == "naive":
-        save_torch(work / "edit_field.pt", {"method": "naive", "field": field.state_dict()})
+        save_torch(
+            work / "edit_field.pt",
+            {
+                "format_version": FORMAT_VERSIONS["edit"],
+                "method": "naive",
+                "field": field.state_dict(),
+            },
+        )
     else:
         save_torch(
             work / "edit_field.pt",
             {
+                "format_version": FORMAT_VERSIONS["edit"],
                 "method": "texture",
                 "editing": editing.state_dict(),
                 "compositor": None if compositor is None else compositor.state_dict(),

@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 import torch
 
+from recon.formats import FORMAT_VERSIONS, check_format
 from recon.proxy_mesh import write_mesh
 from recon.proxy_refine import REFINE_MIN_COMPONENT
 from recon.rundir import RunDir
@@ -586,8 +587,7 @@ def load_fitted(run_dir, device: torch.device | None = None):
     if not path.is_file():
         raise SineError(f"{path} not found; run `sine fit {run.root}` first")
     data = load_torch(path, rebuild=f"`sine fit {run.root} --force`")
-    if not isinstance(data.get("field_config"), str):
-        raise SineError(f"{path} is from an older version; run `sine fit {run.root} --force`")
+    check_format(data, path, "fit", f"`sine fit {run.root} --force`")
     field = TemplateField(from_json(TemplateFieldConfig, data["field_config"]))
     field.load_state_dict(data["field"])
     bg = Background(data["background_color"], learnable=False)
@@ -624,10 +624,8 @@ def band_widths(cfg: FitConfig) -> list[float]:
 
 
 def refinements_done(proxy_state: dict | None) -> int:
-    """Rounds of proxy refinement recorded in a fit's checkpointed proxy state (fits saved
-    before rounds were counted recorded only whether one was done)."""
-    state = proxy_state or {}
-    return int(state.get("rounds", 1 if state.get("refined") else 0))
+    """Rounds of proxy refinement recorded in a fit's checkpointed proxy state."""
+    return int((proxy_state or {}).get("rounds", 0))
 
 
 def refine_with_field(
@@ -816,19 +814,6 @@ def _train_detail(
     return stats
 
 
-# Options added after fits were recorded whose default is not what those fits did: a run
-# recorded without them counts as having had these values (so it is fitted again, not reused).
-RECORDED_BEFORE = {
-    "average_window": 0.0,
-    "refine_rounds": 1,
-    "band_width_start": 0.04,
-    "detail_steps": 0,
-    "detail_check": 0.0,
-    "density_hidden": 128,
-    "refine_min_component": 0.02,
-}
-
-
 # Settings that do not change the result: a checkpoint made with other values still resumes.
 _RUNTIME_KEYS = RUNTIME_KEYS + (
     "eval_chunk",
@@ -877,7 +862,8 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         force=force,
         progress=progress,
         advice="lower learning rates (e.g. half of --lr-grid and --lr-mlp)",
-        defaults={**to_dict(FitConfig()), **RECORDED_BEFORE},
+        format_version=FORMAT_VERSIONS["fit"],
+        defaults=to_dict(FitConfig()),
         inputs=run.inputs(*FIT_INPUTS),
         outputs=("field.pt",),
     )
@@ -1057,6 +1043,7 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
     save_torch(
         trainer.work_dir / "field.pt",
         {
+            "format_version": FORMAT_VERSIONS["fit"],
             "field_config": to_json(field.cfg),
             "field": field.state_dict(),
             "background_color": background().detach().cpu().tolist(),

@@ -18,6 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from recon.formats import FORMAT_VERSIONS, format_change
 from recon.rundir import RunDir
 from render.cameras import Camera, CameraSet
 from render.configs import option, to_dict, validate
@@ -36,8 +37,6 @@ from render.locks import lock_folder
 STAGES = ("ingest", "masks", "poses", "normalize", "depth", "proxy_mesh", "report")
 # The prefix of a ReconConfig option's help text names the stage it belongs to.
 _HELP_PREFIX = {"proxy_mesh": "proxy"}
-# Options added with a default that is not what runs recorded before them did
-RECORDED_BEFORE = {"proxy_carve": False}
 
 
 @dataclass
@@ -275,6 +274,11 @@ class Pipeline:
         self.run, self.cfg, self.force, self.ignore_poses = run, cfg, force, ignore_poses
         self.state_path = run.root / "recon_state.json"
         self.state = read_json(self.state_path) if self.state_path.is_file() else {"stages": {}}
+        change = format_change(self.state.get("format_version"), "recon")
+        if change is not None and set(self.state["stages"]) - {"ingest"}:
+            print(f"[recon] {self.state_path} is out of date ({change}): every stage runs again")
+            self.state["stages"] = {k: v for k, v in self.state["stages"].items() if k == "ingest"}
+        self.state["format_version"] = FORMAT_VERSIONS["recon"]
 
     # ---- bookkeeping ------------------------------------------------------------------------
     def _done(self, stage: str) -> bool:
@@ -291,19 +295,14 @@ class Pipeline:
         write_json(self.state_path, self.state)
 
     def _changed(self, stage: str) -> list[str]:
-        """Options of a finished stage that differ from the ones given now (a state written
-        before options were recorded counts as unchanged)."""
+        """Options of a finished stage that differ from the ones given now (an option added
+        after the stage ran counts as its default)."""
         from recon.training import changed_options
 
-        old = self.state.get("options", {}).get(stage)
+        old = self.state.get("options", {}).get(stage, {})
         new = stage_options(self.cfg, stage, self.ignore_poses)
-        if old is None:
-            return []
-        # an option added after the stage ran: the stage ran as its default does, unless the
-        # default changed the behaviour (RECORDED_BEFORE)
         defaults = stage_options(ReconConfig(), stage, self.ignore_poses)
-        before = {k: v for k, v in RECORDED_BEFORE.items() if k in defaults}
-        return changed_options({**defaults, **before, **old}, new)
+        return changed_options({**defaults, **old}, new)
 
     def run_stage(self, stage: str, fn, *args) -> dict:
         if self._done(stage) and not self.force:

@@ -83,6 +83,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from recon.formats import version_change
 from render.configs import option
 from render.errors import SineError
 from render.io import (
@@ -249,9 +250,11 @@ class Trainer:
     directory: the stage's results folder; name: the stage as the user knows it (messages, the
     progress bar); config: the stage's resolved options (to_dict(cfg)); runtime_keys: options
     that do not change the result (device, threads, ...). `advice`: what to change when the loss
-    diverges (resuming as is would repeat the same steps). `defaults`: the options' default
-    values: an option added after a run was recorded counts, for that run, as its default (a
-    new option left at its default does not retrain finished runs). `inputs`: files or folders
+    diverges (resuming as is would repeat the same steps). `format_version`: the stage's entry in
+    `recon.formats.FORMAT_VERSIONS`, recorded with the run and in its metrics.json: a run of
+    another version is trained again. `defaults`: the options' default values: an option added
+    after a run was recorded counts, for that run, as its default (an option added with a default
+    that changes the behaviour comes with a new format version). `inputs`: files or folders
     the stage is made from; `outputs`: torch files of `directory` that must load for the run to
     count as done.
     """
@@ -272,6 +275,7 @@ class Trainer:
         progress: bool = True,
         manual_backward: bool = False,
         advice: str = "lower learning rates",
+        format_version: int,
         defaults: dict | None = None,
         inputs: dict[str, str | os.PathLike] | None = None,
         outputs: tuple[str, ...] = (),
@@ -282,7 +286,9 @@ class Trainer:
         # what the stage is made from (name -> file / folder): their digests are recorded with
         # the options, so a finished run whose inputs changed since is trained again
         self.inputs = {key: artefact_digest(path) for key, path in (inputs or {}).items()}
-        self.config = {**config, "inputs": self.inputs} if inputs is not None else config
+        self.config = {**config, "inputs": self.inputs} if inputs is not None else dict(config)
+        self.format_version = format_version
+        self.config["format_version"] = format_version
         self.iterations, self.seed, self.log_every = iterations, seed, log_every
         self.checkpoint_every, self.checkpoint_seconds = checkpoint_every, checkpoint_seconds
         self.force, self.progress, self.manual_backward = force, progress, manual_backward
@@ -310,9 +316,7 @@ class Trainer:
             if self.force and metrics.is_file():
                 self._say(f"--force: training again; {self.directory} stays until it finishes")
             elif metrics.is_file():
-                self._say(
-                    f"{self.directory} is unreadable or from an older version: training again"
-                )
+                self._say(f"{self.directory} has no readable checkpoint: training again")
             self._prepare_work_dir()
             return None
         changes = self._changes(done["config"])
@@ -347,21 +351,20 @@ class Trainer:
         return None
 
     def _changes(self, recorded: dict) -> list[str]:
-        """The options that differ from a recorded run's (see `defaults`), then the inputs that
-        changed since it was made."""
+        """Why a recorded run is out of date: its format version, else the options that differ
+        from its options (see `defaults`), then the inputs that changed since it was made."""
         recorded = dict(recorded)
-        made_from = recorded.pop("inputs", None)
-        options = {k: v for k, v in self.config.items() if k != "inputs"}
+        change = version_change(recorded.pop("format_version", None), self.format_version)
+        if change is not None:
+            return [change]
+        made_from = recorded.pop("inputs", {})
+        options = {k: v for k, v in self.config.items() if k not in ("inputs", "format_version")}
         changes = changed_options({**self.defaults, **recorded}, options, self.runtime_keys)
-        if "inputs" in self.config:
-            if made_from is None:
-                changes.append("what it was made from was not recorded (an older version)")
-            else:
-                changes += [
-                    f"{key} is not the one it was made from"
-                    for key, digest in self.inputs.items()
-                    if made_from.get(key) != digest
-                ]
+        changes += [
+            f"{key} is not the one it was made from"
+            for key, digest in self.inputs.items()
+            if made_from.get(key) != digest
+        ]
         return changes
 
     def _prepare_work_dir(self) -> None:
@@ -382,7 +385,7 @@ class Trainer:
             self._say(f"--force: removing the interrupted run in {self.work_dir} ({size})")
         elif self.checkpoint_path.is_file():
             self._say(
-                f"{self.checkpoint_path} is unreadable or from an older version: starting over "
+                f"{self.checkpoint_path} is unreadable: starting over "
                 f"(removing {self.work_dir}, {size})"
             )
         elif self.work_dir.exists() and any(self.work_dir.iterdir()):
@@ -539,8 +542,12 @@ class Trainer:
 
     # ---- after training ----------------------------------------------------------------------
     def publish(self) -> None:
-        """Writes log.json and moves work_dir to `directory`, replacing the old results."""
+        """Writes log.json, the format version into metrics.json, and moves work_dir to
+        `directory`, replacing the old results."""
         write_json(self.work_dir / "log.json", self.log)
+        metrics = self.work_dir / "metrics.json"
+        if metrics.is_file():
+            write_json(metrics, {**read_json(metrics), "format_version": self.format_version})
         remove_partial_writes(self.work_dir)
         old = self.directory.with_name(self.directory.name + ".old")
         shutil.rmtree(old, ignore_errors=True)

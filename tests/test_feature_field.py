@@ -128,6 +128,21 @@ def test_distillation_reduces_loss_and_writes_outputs(run_root):
     assert "features" in stages
 
 
+def test_features_of_another_format_version_are_refused_with_the_command(run_root, monkeypatch):
+    from edit.feature_field_fit import load_feature_field
+    from recon import formats
+
+    assert read_json(RunDir(run_root).features / "metrics.json")["format_version"] == 1
+    load_feature_field(run_root)
+    monkeypatch.setitem(formats.FORMAT_VERSIONS, "features", 2)
+    with pytest.raises(SineError) as exc:
+        load_feature_field(run_root)
+    assert str(exc.value) == (
+        f"{run_root / 'features' / 'field.pt'} is out of date (written in format version 1, "
+        f"this version writes 2); run `sine features {run_root} --force`"
+    )
+
+
 def test_rendered_features_beat_the_mean_and_an_untrained_field(run_root):
     """On the training views the rendered features follow DINO's: centred cosine (the mean
     feature removed) well above a field predicting the mean feature (0) or an untrained one."""

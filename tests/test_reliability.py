@@ -229,6 +229,41 @@ def test_a_truncated_template_names_the_command_that_rebuilds_it_and_fit_redoes_
     load_fitted(run)
 
 
+def test_a_template_of_another_format_version_is_refused_and_fitted_again(run, capsys):
+    from recon import formats
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setitem(formats.FORMAT_VERSIONS, "fit", 2)
+        with pytest.raises(SineError) as exc:
+            load_fitted(run)
+        assert str(exc.value) == (
+            f"{run / 'template' / 'field.pt'} is out of date (written in format version 1, this "
+            f"version writes 2); run `sine fit {run} --force`"
+        )
+        capsys.readouterr()
+        metrics = fit_template(run, FitConfig(**TINY_FIT), progress=False)
+        assert not metrics.get("skipped")
+        assert io.read_json(run / "template" / "metrics.json")["format_version"] == 2
+        assert "(written in format version 1, this version writes 2): training again" in (
+            capsys.readouterr().out
+        )
+        load_fitted(run)
+
+
+def test_an_edit_of_another_format_version_is_refused_and_made_again(run, tmp_path, capsys):
+    from recon import formats
+
+    edit(run, "x", tmp_path / "t.png")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setitem(formats.FORMAT_VERSIONS, "edit", 2)
+        line = cli_error(
+            capsys, "render", run, "--edit", "x", "--views", "test", "--out", tmp_path / "r"
+        )
+        assert "(written in format version 1, this version writes 2); run `sine edit" in line
+        assert not edit(run, "x", tmp_path / "t.png").get("skipped")
+        assert "written in format version 1" in capsys.readouterr().out
+
+
 def test_a_file_of_python_objects_is_never_loaded_and_torch_advice_is_not_repeated(tmp_path):
     import torch
 

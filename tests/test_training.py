@@ -27,7 +27,7 @@ class Toy:
         self.y = self.x.sum(1, keepdim=True).sin()
         self.seen = np.zeros(4)  # a numpy array the stage updates
         self.notes = {"steps": 0}  # a JSON-able dict
-        kwargs = {"checkpoint_every": 4, "progress": False, **kwargs}
+        kwargs = {"checkpoint_every": 4, "progress": False, "format_version": 3, **kwargs}
         self.trainer = Trainer(
             root / "toy",
             "toy",
@@ -123,7 +123,8 @@ def test_finished_run_is_skipped_and_changed_options_train_again(tmp_path, capsy
     t.trainer.publish()
     assert not t.trainer.work_dir.exists()
     assert read_json(tmp_path / "toy" / "log.json")[-1]["step"] == 12
-    assert Toy(tmp_path).trainer.finished() == {"score": 1.0, "skipped": True}
+    done = {"score": 1.0, "format_version": 3, "skipped": True}
+    assert Toy(tmp_path).trainer.finished() == done
     # a runtime key (device) does not matter; a real option does, and is named
     assert Toy(tmp_path, {**CONFIG, "device": "cuda"}).trainer.finished() is not None
     capsys.readouterr()
@@ -136,7 +137,7 @@ def test_finished_run_is_skipped_and_changed_options_train_again(tmp_path, capsy
     forced.start()
     assert forced.trainer.step == 0
     forced.trainer.run(forced.step, stop_at=3)
-    assert read_json(tmp_path / "toy" / "metrics.json") == {"score": 1.0}
+    assert read_json(tmp_path / "toy" / "metrics.json")["score"] == 1.0
     # an option added after the run was recorded: at its default the run stays finished
     newer = {**CONFIG, "extra": 0.0}
     assert Toy(tmp_path, newer, defaults={"extra": 0.0}).trainer.finished() is not None
@@ -173,7 +174,6 @@ def test_a_run_whose_inputs_changed_is_trained_again(tmp_path, capsys):
     (tmp_path / "views" / "b.png").write_bytes(b"two")  # a folder: a file more is a change
     assert Toy(tmp_path, inputs=inputs).trainer.finished() is None
     assert "views is not the one" in capsys.readouterr().out
-    # a run recorded without its inputs (an older version) is trained again too
     (tmp_path / "views" / "b.png").unlink()
     assert Toy(tmp_path, inputs=inputs).trainer.finished() is not None
     assert Toy(tmp_path).trainer.finished() is not None  # a stage that names no inputs
@@ -183,8 +183,26 @@ def test_a_run_whose_inputs_changed_is_trained_again(tmp_path, capsys):
     write_json(plain.trainer.work_dir / "metrics.json", {"score": 3.0})
     plain.trainer.publish()
     capsys.readouterr()
+    # a run made without inputs, for a stage that now names some: trained again
     assert Toy(tmp_path, inputs=inputs).trainer.finished() is None
-    assert "was not recorded" in capsys.readouterr().out
+    assert "views is not the one" in capsys.readouterr().out
+
+
+def test_a_run_of_another_format_version_is_trained_again_with_one_line(tmp_path, capsys):
+    t = Toy(tmp_path)
+    t.start()
+    t.trainer.run(t.step)
+    write_json(t.trainer.work_dir / "metrics.json", {"score": 1.0})
+    t.trainer.publish()
+    assert read_json(tmp_path / "toy" / "metrics.json")["format_version"] == 3
+    assert Toy(tmp_path).trainer.finished() is not None
+    capsys.readouterr()
+    assert Toy(tmp_path, format_version=4).trainer.finished() is None
+    said = capsys.readouterr().out.strip().splitlines()
+    assert said == [
+        f"toy: the finished run in {tmp_path / 'toy'} is out of date (written in format version "
+        "3, this version writes 4): training again (the old results stay until it finishes)"
+    ]
 
 
 def test_interrupted_run_with_other_options_is_discarded(tmp_path, capsys):
