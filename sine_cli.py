@@ -16,6 +16,14 @@ import sys
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
+class ShortUsageFormatter(argparse.RawDescriptionHelpFormatter):
+    """`usage: sine CMD [options] POSITIONALS`: the options are listed below it anyway."""
+
+    def _format_usage(self, usage, actions, groups, prefix):
+        names = [a.metavar or a.dest for a in actions if not a.option_strings]
+        return f"usage: {self._prog} [options] {' '.join(names)}\n\n"
+
+
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """The `sine` parser. Each command module has NAME, HELP, DESCRIPTION, add_arguments(parser)
     and run(args); only the command named in `argv` gets its options (they come from library
@@ -41,7 +49,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
             module.NAME,
             help=module.HELP,
             description=module.DESCRIPTION,
-            formatter_class=argparse.RawDescriptionHelpFormatter,
+            formatter_class=ShortUsageFormatter,
         )
         module.add_arguments(command)
         command.set_defaults(func=module.run)
@@ -49,13 +57,14 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from render.configs import resolve_settings
     from render.errors import SineError
     from render.io import WRITE_ERRORS, write_error
 
     parser = build_parser(argv)
     args = parser.parse_args(argv)
     try:
-        result = args.func(args)
+        result = args.func(resolve_settings(args))
     except SineError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -1,34 +1,13 @@
 """`sine demo`: the main job end to end on a built-in procedural object, with no outside data.
 
-Stages (each the library function behind its own command; each skips finished work):
-
-    synth     a synthetic turntable with ground truth and GT edits            (`sine synth`)
-    recon     poses by SfM (the synthetic poses are ignored; the figurine keeps
-              them: see --procedural), proxy mesh                             (`sine recon`)
-    fit       the template radiance field                                     (`sine fit`)
-    features  the DINO feature field                                          (`sine features`)
-    masks     semantic masks of the part painted in view K, scored against
-              the ground-truth part labels                                    (`sine masks`)
-    target    the geometric editing target: the GT geometric edit's image of view K,
-              as an RGBA target (edit/targets.py)                             (`sine target`)
-    edit      the geometric edit learnt from that one image                   (`sine edit`)
-    texture target
-              the texture target: view K's capture with the part the GT texture edit
-              recolours (its GT label) turned by the same hue                 (`sine target
-                                                                               --recolor`)
-    texture   the texture edit learnt from that one image           (`sine edit --mode texture`)
-    render    orbit videos of the template, both edits and template | geometric | texture
-                                                                              (`sine render`)
-    export    the template and both edited meshes, coloured, as GLB           (`sine export`)
-    view      a viewer screenshot of the template and the geometric edit, with the cameras
-                                                                              (`sine view`)
-    eval      held-out views against the ground-truth edits                   (`sine eval`)
-    summary   OUT/summary.png (views x template | geometric edit | its ground truth | texture
-              edit | its ground truth, with the numbers), OUT/summary.html (the pictures and
-              videos next to it), OUT/demo_summary.json
-
-Everything lands under OUT/. `--fast` renders fewer views at a lower working resolution and
-trains fewer steps (the end-to-end test runs it).
+A synthetic turntable with ground truth (`sine synth`), reconstructed from its images alone
+(`sine recon`, SfM poses), the template (`sine fit`), the DINO feature field and semantic masks
+(`sine features`, `sine masks`), a geometric and a texture edit each learnt from one target image
+(`sine target`, `sine edit`), then orbit videos, coloured GLB meshes, a viewer screenshot and
+held-out scores against the ground-truth edits (`sine render`, `export`, `view`, `eval`). Each
+stage skips finished work. Everything lands under OUT/; look at OUT/summary.png and
+OUT/summary.html. `--fast` renders fewer views at a lower working resolution and trains fewer
+steps.
 """
 
 from __future__ import annotations
@@ -804,7 +783,7 @@ HELP = "run the whole pipeline on a built-in procedural object, with a geometric
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_options(parser, DemoConfig)
+    add_options(parser, DemoConfig, shown=("out", "fast", "procedural", "device", "force"))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -11,47 +11,23 @@ from render.errors import SineError
 NAME = "edit"
 HELP = "learn a 3D edit from one edited image of a view (RUN/edits/NAME/)"
 DESCRIPTION = """\
-Learns the editing field that turns the template of RUN into the object of the TARGET image, an
-edited version of view K (make one with `sine snapshot` + any 2D editor, or `sine target`).
+Learns the editing field that turns the template of RUN into the object of TARGET, an edited
+image of view K (`sine snapshot` + any 2D editor, or `sine target`), and writes RUN/edits/NAME/.
 
-Geometry (--mode geometry): the target's silhouette comes from its alpha channel, --mask, or
-background keying, in that order. The editable region is --region (a white-on-black PNG of the
-part, at the working size), else where target and template differ. An ARAP shape prior is built
-from dense correspondences between the template's view and the target (RUN/edits/NAME/
-prior_mesh.ply and prior_preview.png: check it), then the editing field is trained with the
-paper's losses. --method naive fine-tunes the template on the single view instead (a baseline).
+  geometry  the target's silhouette (alpha, --mask, or keying) drives an ARAP shape prior
+            (prior_preview.png: check it) and the paper's losses; --region limits the edit
+  texture   the target is view K repainted (--region: the repainted part), or --reference
+            PHOTO gives a look to take; semantic masks from `sine features` keep the rest
+  hybrid    the shape, then the colours: one --target that changes both, or
+            --target-geometry IMG with --target-texture IMG (view K of the new shape
+            repainted) and --region-texture PNG when the repainted part differs from --region
 
-Writes RUN/edits/NAME/ (target, region, prior mesh, edit_field.pt, metrics.json, previews/).
-
-Texture (--mode texture): the target is view K repainted (`sine target --recolor/--paint` makes
-one); --region is the repainted part (else where target and template differ). Or --reference
-PHOTO: a photo of another object whose look the edited part takes (unaligned; --region then
-limits the part, else the whole object changes; the part takes the colours of the photo's
-object: an RGBA cut-out's opaque pixels, or the object keyed from a plain backdrop
-(--reference-mask; --w-color 0 turns the colour term off)). The texture field
-F_dT and a 2D compositor learn the edit from view K and a DINO texture loss on views all around
-(deferred back-propagation); semantic masks from RUN/features (`sine features`) keep the rest
-of the object unchanged. --no-compositor and --method naive are baselines.
-
-Hybrid (--mode hybrid): geometric steps, then texture steps on the geometrically edited object,
-kept as one edit. One --target that changes both (its silhouette drives the shape, its colours
-the texture), or --target-geometry + --target-texture (view K of the new shape repainted; or
---reference PHOTO). Each phase takes --iterations steps; --region limits both, unless
---region-texture gives the repainted part. The semantic masks of RUN/features follow the new
-shape: they carry the colours to the part's sides view K does not show.
-
-An interrupted edit resumes when re-run; changed options train it again; --force starts over.
+An interrupted edit resumes when re-run; changed settings train it again; --force starts over.
 
 examples:
-  sine snapshot runs/car --view 9 --out view9.png      # edit view9.png in any 2D tool, then
   sine edit runs/car --target view9_edited.png --view 9 --name taller
-  sine target runs/car --view 9 --warp "130,70>130,40" --out t.png && \\
-      sine edit runs/car --target t.png --view 9 --name warp --symmetric
-  sine render runs/car --edit taller --orbit 60 --video taller.mp4 --out renders/
-  sine target runs/car --view 9 --recolor --region part.png --hue 120 --out red.png && \\
-      sine edit runs/car --target red.png --view 9 --region part.png --mode texture --name red
+  sine edit runs/car --target red.png --view 9 --region part.png --mode texture --name red
   sine edit runs/car --reference photo.png --view 9 --mode texture --name look
-  sine edit runs/car --target-geometry t.png --target-texture t_red.png --view 9 --mode hybrid
 """
 
 
@@ -74,16 +50,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="geometry",
         help="what the edit changes (hybrid: the shape, then the colours)",
     )
-    parser.add_argument(
-        "--target-geometry", type=Path, help="hybrid: the image of view K with the new shape"
-    )
-    parser.add_argument(
-        "--target-texture", type=Path, help="hybrid: view K of the new shape, repainted"
-    )
+    parser.add_argument("--target-geometry", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--target-texture", type=Path, help=argparse.SUPPRESS)
     parser.add_argument(
         "--region-texture",
         type=Path,
-        help="hybrid: the repainted part, when another than --region (white on black in view K)",
+        help=argparse.SUPPRESS,  # described above
     )
     parser.add_argument(
         "--reference", type=Path, help="texture: a photo of another object whose look to take"
@@ -97,10 +69,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--force", action="store_true", help="start over, ignoring checkpoints")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_options(parser, GeometryEditConfig)
+    add_options(parser, GeometryEditConfig, shown=("device",))
     # options of both modes have one default (tests/test_edit_texture.py checks): added once
     shared = tuple(f.name for f in dataclasses.fields(GeometryEditConfig))
-    add_options(parser, TextureEditConfig, skip=shared)
+    add_options(parser, TextureEditConfig, skip=shared, shown=())
 
 
 def run(args: argparse.Namespace) -> int:

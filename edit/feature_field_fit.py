@@ -458,7 +458,7 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
         }
     )
     write_json(trainer.work_dir / "metrics.json", metrics)
-    trainer.publish()
+    trainer.publish(settings=cfg)
     run.append_config("features", cfg)
     return metrics
 

@@ -24,7 +24,12 @@ HELP = "distil DINO features into a feature field (RUN/features/)"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from edit.feature_field_fit import FeaturesConfig
 
-    add_training_arguments(parser, FeaturesConfig, "run directory with a fitted template")
+    add_training_arguments(
+        parser,
+        FeaturesConfig,
+        "run directory with a fitted template",
+        shown=("iterations", "device"),
+    )
 
 
 def run(args: argparse.Namespace) -> int:

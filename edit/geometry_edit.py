@@ -628,7 +628,7 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
     )
     write_previews(run, scene, work / "previews", cfg.previews, device)
     write_json(work / "metrics.json", metrics)
-    trainer.publish()
+    trainer.publish(settings=cfg)
     return metrics
 
 

@@ -375,7 +375,7 @@ def _edit(
     metrics.update(write_previews(run, scene, work / "previews", tcfg.previews, tex_setup, device))
     metrics["total_seconds"] = time.perf_counter() - t_start
     write_json(work / "metrics.json", metrics)
-    trainer.publish()
+    trainer.publish(settings={**to_dict(tcfg), **to_dict(gcfg)})
     return metrics
 
 

@@ -48,8 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--out", type=Path, required=True, help="output directory")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_options(parser, SemanticMaskConfig)
-    add_options(parser, MasksConfig)
+    add_options(parser, SemanticMaskConfig, shown=("num_clusters",))
+    add_options(parser, MasksConfig, shown=("device",))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -57,7 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--edit", default=None, help="render the edit RUN/edits/NAME")
     parser.add_argument("--strength", type=float, default=1.0, help="edit strength (0..1)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_options(parser, RenderConfig)
+    add_options(parser, RenderConfig, shown=("orbit", "views", "video", "compare", "device"))
 
 
 def path_cameras(run_dir, cfg: RenderConfig) -> list:

@@ -159,7 +159,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="view index 0..N-1 in cameras.json order, or an image name",
     )
     parser.add_argument("--out", type=Path, required=True, help="output PNG (RGBA)")
-    add_options(parser, ViewSourceConfig)
+    add_options(parser, ViewSourceConfig, shown=("source", "device"))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -16,25 +16,13 @@ from render.configs import add_options, from_args
 from render.errors import SineError
 
 DESCRIPTION = """\
-Makes an editing target from view --view of RUN with exactly one 2D operation:
-
-  --warp "x0,y0>x1,y1;..."           drag handle points (thin-plate-spline warp of the object's
-                                     pixels and alpha; the image border stays put, and so do
-                                     the --anchor "x,y;..." points)
-  --region painted.png --scale S     scale the painted part about its centre (--center "x,y")
-  --stretch-axis x|y --factor F      stretch the object along an image axis about its centre
-                                     (--about C: the column/row that stays put; --region: only
-                                     the painted part)
-  --recolor --region painted.png --hue DEG [--saturation S]
-                                     rotate the hue of the painted part (S multiplies saturation)
-  --paint painted.png --color R,G,B  paint the part in a colour (0..255), shading kept (--flat:
-                                     one flat colour)
-
+Makes an editing target from view --view of RUN with exactly one 2D operation (below).
 Coordinates are pixels as an image editor shows them: x = column, y = row, from 0 at the top
-left. Painted regions are PNGs of the run's working size (white = painted; make one over
-`sine snapshot`'s picture); texture operations touch only object pixels (alpha >= 0.5). Writes
-OUT (RGBA, alpha = the edited silhouette; composited over the background it is the
-edited view) and OUT_before_after.png.
+left. Painted regions are PNGs of the run's working size, white = painted (paint over
+`sine snapshot`'s picture). Writes OUT (RGBA: alpha is the edited silhouette) and
+OUT_before_after.png. Modifiers: --warp with --anchor 'x,y;...' (points that stay put), --scale
+with --center 'x,y' (its fixed point), --stretch-axis with --about C (the column or row that
+stays put), --recolor with --saturation S (multiplies it), --paint with --flat (no shading).
 """
 
 EXAMPLES = {
@@ -244,11 +232,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     ops.add_argument(
         "--warp", metavar="'x0,y0>x1,y1;...'", help="drag handle points from x0,y0 to x1,y1"
     )
-    ops.add_argument(
-        "--anchor",
-        metavar="'x,y;...'",
-        help="--warp: points that stay put (besides the image corners and edge midpoints)",
-    )
+    ops.add_argument("--anchor", metavar="'x,y;...'", help=argparse.SUPPRESS)
     ops.add_argument(
         "--region",
         type=Path,
@@ -256,27 +240,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--recolor; with --stretch-axis, stretch only this part",
     )
     ops.add_argument("--scale", type=float, help="scale the --region part by this factor")
-    ops.add_argument(
-        "--center", metavar="'x,y'", help="--scale: fixed point (default: the part's centre)"
-    )
+    ops.add_argument("--center", metavar="'x,y'", help=argparse.SUPPRESS)
     ops.add_argument("--stretch-axis", choices=["x", "y"], help="stretch along this image axis")
     ops.add_argument("--factor", type=float, help="--stretch-axis: stretch factor (e.g. 1.2)")
-    ops.add_argument(
-        "--about",
-        type=float,
-        help="--stretch-axis: the column (x) or row (y) that stays put (default: the centre)",
-    )
+    ops.add_argument("--about", type=float, help=argparse.SUPPRESS)
     ops.add_argument("--recolor", action="store_true", help="rotate the hue of the --region part")
     ops.add_argument("--hue", type=float, help="--recolor: hue rotation in degrees (e.g. 120)")
-    ops.add_argument(
-        "--saturation", type=float, help="--recolor: multiply the saturation by S (e.g. 1.5)"
-    )
+    ops.add_argument("--saturation", type=float, help=argparse.SUPPRESS)
     ops.add_argument("--paint", type=Path, help="painted part (PNG) to fill with --color")
     ops.add_argument("--color", metavar="R,G,B", help="--paint: colour, 0..255 per channel")
-    ops.add_argument(
-        "--flat", action="store_true", help="--paint: one flat colour instead of keeping shading"
-    )
-    add_options(parser, ViewSourceConfig)
+    ops.add_argument("--flat", action="store_true", help=argparse.SUPPRESS)
+    add_options(parser, ViewSourceConfig, shown=())
 
 
 def run(args: argparse.Namespace) -> int:

@@ -854,7 +854,7 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
     metrics.update(write_previews(run, scene, work / "previews", cfg.previews, setup, device))
     metrics["total_seconds"] = time.perf_counter() - t_start
     write_json(work / "metrics.json", metrics)
-    trainer.publish()
+    trainer.publish(settings=cfg)
     return metrics
 
 

@@ -1094,6 +1094,6 @@ def _fit(run: RunDir, cfg: FitConfig, device, force: bool, progress: bool, stop_
         }
     )
     write_json(trainer.work_dir / "metrics.json", metrics)
-    trainer.publish()
+    trainer.publish(settings=cfg)
     run.append_config("fit", cfg)
     return metrics

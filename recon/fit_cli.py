@@ -24,7 +24,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from recon.fit import FitConfig
 
     add_training_arguments(
-        parser, FitConfig, "run directory (with cameras.json and proxy_mesh.ply)"
+        parser,
+        FitConfig,
+        "run directory (with cameras.json and proxy_mesh.ply)",
+        shown=("preset", "iterations", "background", "device"),
     )
 
 

@@ -21,7 +21,7 @@ import numpy as np
 from recon.formats import FORMAT_VERSIONS, format_change
 from recon.rundir import RunDir
 from render.cameras import Camera, CameraSet
-from render.configs import option, to_dict, validate
+from render.configs import option, to_dict, validate, write_settings
 from render.errors import SineError
 from render.io import (
     atomic_path,
@@ -867,6 +867,10 @@ def _recon(capture: Path | None, run: RunDir, cfg: ReconConfig, ingest_cfg, new_
     elif not run.captures.is_file():
         raise SineError(f"{run.root} has no captures.json: give the capture to reconstruct")
     run.append_config("recon", {"recon": to_dict(cfg), "ingest": to_dict(ingest_cfg)})
+    # the settings in effect (`sine recon --config` of this file reproduces the run)
+    settings = {**to_dict(ingest_cfg), **to_dict(cfg)}
+    settings.pop("force")  # what to redo, not how
+    write_settings(run.root / "recon_config.toml", settings)
     for stage in STAGES[1:]:
         pipe.run_stage(stage, getattr(pipe, f"stage_{stage}"))
         pipe.gate(stage)

@@ -32,8 +32,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="capture to reconstruct (omit to continue an ingested run)",
     )
     parser.add_argument("--out", type=Path, required=True, help="run directory to write")
-    add_options(parser, IngestConfig)
-    add_options(parser, ReconConfig)
+    add_options(
+        parser, IngestConfig, shown=("width", "frames", "format", "ignore_poses", "masks", "force")
+    )
+    add_options(parser, ReconConfig, shown=("mask_method", "depth_method", "accept_poor_poses"))
 
 
 def run(args) -> int:

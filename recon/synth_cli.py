@@ -25,7 +25,21 @@ HELP = "render a synthetic turntable with ground truth (images, masks, depth, pa
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from recon.synth import SynthConfig
 
-    add_options(parser, SynthConfig)
+    add_options(
+        parser,
+        SynthConfig,
+        shown=(
+            "out",
+            "mesh",
+            "procedural",
+            "views",
+            "width",
+            "height",
+            "background",
+            "edit",
+            "format",
+        ),
+    )
     parser.add_argument(
         "--quiet", action="store_true", help="no progress bars, only the final summary line"
     )

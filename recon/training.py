@@ -84,7 +84,7 @@ import torch
 from tqdm import tqdm
 
 from recon.formats import version_change
-from render.configs import option
+from render.configs import option, write_settings
 from render.errors import SineError
 from render.io import (
     TORCH_READ_ERRORS,
@@ -541,10 +541,13 @@ class Trainer:
         self.checkpoint()
 
     # ---- after training ----------------------------------------------------------------------
-    def publish(self) -> None:
-        """Writes log.json, the format version into metrics.json, and moves work_dir to
-        `directory`, replacing the old results."""
+    def publish(self, settings: Any = None) -> None:
+        """Writes log.json, the format version into metrics.json, the stage's `settings` (its
+        config in effect) as config.toml (`--config` of it reproduces the run), and moves
+        work_dir to `directory`, replacing the old results."""
         write_json(self.work_dir / "log.json", self.log)
+        if settings is not None:
+            write_settings(self.work_dir / "config.toml", settings)
         metrics = self.work_dir / "metrics.json"
         if metrics.is_file():
             write_json(metrics, {**read_json(metrics), "format_version": self.format_version})

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -11,6 +13,9 @@ import pytest
 import sine_cli
 from edit import commands as edit_commands
 from recon import commands as recon_commands
+from recon.fit import FitConfig
+from render.configs import from_args, resolve_settings, write_settings
+from render.errors import SineError
 
 COMMANDS = [m.NAME for m in recon_commands.MODULES + edit_commands.MODULES]
 
@@ -53,3 +58,63 @@ def test_command_help_shows_the_command_options(capsys):
     with pytest.raises(SystemExit):
         sine_cli.main(["fit", "--help"])
     assert "--iterations" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("name", COMMANDS)
+def test_each_command_help_fits_a_screen_and_help_all_lists_every_setting(name, capsys):
+    with pytest.raises(SystemExit):
+        sine_cli.main([name, "--help"])
+    text = capsys.readouterr().out
+    assert len(text.splitlines()) <= 45, name
+    assert sum(line.startswith("  -") for line in text.splitlines()) <= 15, name
+    assert " dB" not in text  # no benchmark figures in help
+    sub = _subparser(sine_cli.build_parser([name]), name)
+    configs = sub.get_default("_configs") or []
+    if not configs:
+        return
+    with pytest.raises(SystemExit):
+        sine_cli.main([name, "--help-all"])
+    listed = capsys.readouterr().out
+    for cls, skip in configs:
+        for f in dataclasses.fields(cls):
+            assert f.name in skip or f"\n  {f.name}: " in listed, (name, f.name)
+
+
+def _fit_settings(*args):
+    parser = sine_cli.build_parser(["fit", "run", *args])
+    return resolve_settings(parser.parse_args(["fit", "run", *args]))
+
+
+def test_settings_come_from_the_file_then_set_then_flags(tmp_path):
+    config = tmp_path / "fit.toml"
+    config.write_text('iterations = 3\nlr_grid = 0.1\nbackground = "white"\n')
+    args = _fit_settings(
+        "--config", str(config), "--set", "lr_grid=0.5", "--set", "sampler=uniform",
+        "--iterations", "7",
+    )  # fmt: skip
+    assert (args.iterations, args.lr_grid, args.background, args.sampler) == (
+        7,
+        0.5,
+        "white",
+        "uniform",
+    )
+    assert args.levels == FitConfig().levels  # the rest: defaults
+    assert isinstance(
+        _fit_settings("--set", "lr_grid=1").lr_grid, float
+    )  # an int where a float goes
+    assert _fit_settings("--set", "iterations=none").iterations is None  # an optional setting
+    for bad, message in [
+        (["--set", "bogus=1"], "unknown setting 'bogus'; `--help-all` lists the settings"),
+        (["--set", "iterations=abc"], "setting 'iterations' must be int | None (got 'abc')"),
+        (["--set", "iterations"], "--set 'iterations': write NAME=VALUE"),
+        (["--config", str(tmp_path / "none.toml")], "does not exist"),
+    ]:
+        with pytest.raises(SineError, match=re.escape(message)):
+            _fit_settings(*bad)
+    (tmp_path / "broken.toml").write_text("iterations = = 3")
+    with pytest.raises(SineError, match="is not a readable TOML file"):
+        _fit_settings("--config", str(tmp_path / "broken.toml"))
+    # what a stage saves reads back as the same config
+    write_settings(tmp_path / "saved.toml", FitConfig(iterations=9, background="black"))
+    args = _fit_settings("--config", str(tmp_path / "saved.toml"))
+    assert from_args(FitConfig, args) == FitConfig(iterations=9, background="black")

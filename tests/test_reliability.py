@@ -264,6 +264,20 @@ def test_an_edit_of_another_format_version_is_refused_and_made_again(run, tmp_pa
         assert "written in format version 1" in capsys.readouterr().out
 
 
+def test_the_saved_config_reproduces_the_fit_and_the_edit(run, tmp_path, capsys):
+    saved = run / "template" / "config.toml"
+    assert "iterations = 40" in saved.read_text()
+    capsys.readouterr()
+    assert sine_cli.main(["fit", str(run), "--config", str(saved), "--quiet"]) == 0
+    assert "fit: already done with these options" in capsys.readouterr().out
+    edit(run, "x", tmp_path / "t.png", iterations=3)
+    settings = run / "edits" / "x" / "config.toml"
+    assert "iterations = 3" in settings.read_text()
+    words = ["edit", run, "--target", tmp_path / "t.png", "--view", VIEW, "--name", "x"]
+    assert sine_cli.main([*map(str, words), "--config", str(settings), "--quiet"]) == 0
+    assert "edit x: already done with these options" in capsys.readouterr().out
+
+
 def test_a_file_of_python_objects_is_never_loaded_and_torch_advice_is_not_repeated(tmp_path):
     import torch
 
