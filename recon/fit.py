@@ -64,7 +64,7 @@ from render.template_field import Background, TemplateField, TemplateFieldConfig
 # What `--preset` sets (options given explicitly win). Timings: 2 cores, 36 views of 256 px.
 # The cheaper step of fast and default (a 64-wide density head, 12 band samples: ~1.3x the
 # rays per second) costs 0.1 dB held-out object PSNR on average (-0.20..+0.09 over seven paired
-# fits; bench/RESULTS.md, thirty-eighth session) and keeps the dinosaur's default fit under
+# fits; bench/RESULTS.md, "Presets") and keeps the dinosaur's default fit under
 # 5 minutes; quality keeps the wider, denser step.
 _CHEAP_STEP = {"density_hidden": 64, "band_samples": 12}
 PRESETS: dict[str, dict[str, int]] = {

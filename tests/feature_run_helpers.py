@@ -2,7 +2,7 @@
 
 The procedural toycar from `sine synth` (8 views, 64x64, ground-truth part labels) is used as the
 run directory directly (known cameras, the ground-truth mesh as proxy), so no reconstruction is
-needed. Built once per test session under pytest's base temp folder.
+needed. Built once per test run under pytest's base temp folder.
 """
 
 from __future__ import annotations

@@ -338,7 +338,7 @@ def test_hybrid_semantic_masks_recolour_the_part_view_k_does_not_see(hybrid_run,
             pixels = on_part & (after["opacity"] > 0.5)
             greener[name, k] = _greener(after["rgb"], before["rgb"], pixels)
     far = (VIEW + 4) % len(frames)
-    # measured with L_gp fading out (the default since session 7): view K 0.16 / 0.20, the far
+    # measured with L_gp fading out (the default): view K 0.16 / 0.20, the far
     # side 0.14 / 0.010 (with the constant L_gp: 0.25 / 0.29 and 0.22 / 0.015; the tiny edit's
     # shape differs, so do the pixels scored)
     assert greener["semantic", VIEW] > 0.1 and greener["lifted", VIEW] > 0.1, greener
