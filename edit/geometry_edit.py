@@ -113,17 +113,15 @@ class GeometryEditConfig(LoopOptions):
     prior_vertices: str = option(
         "handles",
         "the vertices L_gp matches: the handles (the visible vertices the target moved, lifted to "
-        "3D: what the target says) or all of the prior mesh (the paper's; the rest of M_P is "
-        "ARAP's guess, which held the far side back: -1.0 to -2.2 dB, bench/RESULTS.md)",
+        "3D) or all of the prior mesh (the paper's; the rest of M_P is ARAP's guess)",
         choices=["handles", "all"],
     )
     w_gr: float = option(0.1, "weight of the deformation smoothness L_gr (paper: 0.1)", low=0)
     w_cyc: float = option(10.0, "weight of the cycle loss L_cyc (paper: 10)", low=0)
     w_reg: float = option(
         3.0,
-        "weight of the regularisation L_reg outside the edited region (the paper adds it with "
-        "weight 1; 3 keeps the rest closer to the template at no cost to the edit: "
-        "bench/RESULTS.md, geometric and texture editing)",
+        "weight of the regularisation L_reg outside the edited region (the paper: 1; higher "
+        "keeps the rest closer to the template)",
         low=0,
     )
     w_silhouette: float = option(1.0, "weight of the silhouette BCE inside L_gt", low=0)

@@ -48,7 +48,7 @@ class MasksConfig:
     render_scale: float = option(
         0.5,
         "feature maps are rendered at this fraction of the image size and upsampled (DINO "
-        "features are smooth; the image-guided edges restore the detail): 0.5 is ~4x faster",
+        "features are smooth; the image-guided edges restore the detail; 1: full size)",
         low=0.01,
         high=1.0,
     )

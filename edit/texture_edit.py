@@ -167,18 +167,15 @@ class TextureEditConfig(LoopOptions):
     compositor_head: str = option(
         "affine",
         "what the compositor's UNet predicts per pixel: affine (a 3 x 3 colour transform + "
-        "offset of the pixel's RGB: one transform recolours every shade of a part, seen in view "
-        "K or not; held-out +0.03 to +1.1 dB over the paper's head on every object and seed "
-        "measured) or residual (the paper's: a colour residual in logit space)",
+        "offset of the pixel's RGB, which recolours every shade of a part alike) or residual "
+        "(the paper's: a colour residual in logit space)",
         choices=list(HEADS),
     )
     part_colour: bool = option(
         True,
         "--compositor-head affine with the gate: the transform acts on the edited part's share "
-        "of each pixel's colour (its samples' colours weighted by the gate), not the whole "
-        "pixel's: a pixel on the part's rim keeps its neighbour's share as it was (held-out "
-        "dB, seeds 0 / 1: toycar +0.81 / +0.19, figurine -0.21 / +0.36, spot -0.18 / -0.03; "
-        "--no-part-colour: the whole pixel)",
+        "of each pixel's colour (weighted by the gate), so a rim pixel keeps its neighbour's "
+        "share (--no-part-colour: the whole pixel)",
     )
     iterations: int = option(600, "training steps", low=1)
     template_feature: bool = option(
@@ -210,59 +207,46 @@ class TextureEditConfig(LoopOptions):
     lr_transform: float = option(
         5e-3,
         "--compositor-head affine: Adam learning rate of the colour transform every pixel shares "
-        "(the head's bias; the UNet adds a per-pixel part to it). Higher (0.05) recolours the "
-        "whole editable part alike: better where the part is exactly what changes (toycar "
-        "seed 0 +0.35 dB, UNet at 5e-3), but it spills over what the semantic masks include "
-        "and the user did not paint (spot: unedited 27 dB)",
+        "(the head's bias). Higher recolours the whole editable part alike, but spills over "
+        "what the semantic masks include and the user did not paint",
         low=1e-12,
     )
     fit_transform: bool = option(
         True,
         "--compositor-head affine with the gate, aligned target: fit the shared colour "
-        "transform by least squares from the template to the target on view K's region; where "
-        "it explains the change (relative residual <= --fit-max-residual: a hue turned, a "
-        "colour painted over a part's shades) the edit starts from it and the per-pixel parts "
-        "(the UNet, F_dT) learn at --fitted-lr-factor x their rates, else from no change "
-        "(held-out object PSNR, seeds 0 / 1: spot +1.1 / +0.7, toycar +0.2 / +0.5, figurine "
-        "-0.1 / +1.2 dB)",
+        "transform by least squares on view K's region; where it explains the change "
+        "(residual <= --fit-max-residual) the edit starts from it and the per-pixel parts "
+        "learn at --fitted-lr-factor x their rates, else from no change",
     )
     quadratic_transform: bool = option(
         True,
-        "--compositor-head affine: the colour transform every pixel shares gets a quadratic "
-        "term (products of the part's colour channels; `edit.compositor`), fitted and learnt "
-        "with it: a recolouring that is not one linear map of RGB (a hue turn that lifts greys "
-        "to some saturation) carries to the colours of other views (with "
-        "--fitted-compositor-factor 0, held-out dB: toycar +0.40 / +0.40, figurine +0.65 / "
-        "-0.13 / +0.10, spot +0.18 / +0.18, avocado -0.05; --no-quadratic-transform: linear "
-        "only)",
+        "--compositor-head affine: the shared colour transform gets a quadratic term (products "
+        "of the colour channels), for recolourings that are not one linear map of RGB "
+        "(--no-quadratic-transform: linear only)",
     )
     fit_ridge: float = option(
         1e-4,
         "--fit-transform: ridge of the least-squares fit towards no change, relative to the "
-        "colours' second moments (1e-3 shrank the figurine's fitted map: 25.5 against 27.6 dB "
-        "on its held-out part pixels, bench/bench_colour_map.py)",
+        "colours' second moments (larger shrinks the fitted map; 0: none)",
         low=0.0,
     )
     fit_max_residual: float = option(
         0.3,
         "--fit-transform: the largest |residual| / |change| over view K's region for which the "
-        "fitted transform is kept (the bench's 120-degree hue turns: 0.08-0.17; half the part "
-        "painted one colour: 0.55-0.76)",
+        "fitted transform is kept (a hue turn fits well below it, a partly painted part above)",
         low=0.0,
     )
     fitted_lr_factor: float = option(
         0.1,
-        "--fit-transform, the fit kept: factor on the learning rates of F_dT (at full rates "
-        "it fits view K's own template error from the fitted start, which carries badly to "
-        "other views: toycar 27.0 dB held-out against 28.9)",
+        "--fit-transform, the fit kept: factor on the learning rates of F_dT (1: full rates, "
+        "which fit view K's own template error and carry badly to other views)",
         low=1e-6,
         high=1.0,
     )
     fitted_compositor_factor: float = option(
         0.0,
         "--fit-transform, the fit kept: factor on the learning rate of the compositor's UNet "
-        "(0: frozen, the shared transform and F_dT still learn; with the quadratic term, "
-        "frozen against 0.1, held-out dB: toycar +0.33, figurine +0.16)",
+        "(0: frozen, the shared transform and F_dT still learn)",
         low=0.0,
         high=1.0,
     )
@@ -286,24 +270,18 @@ class TextureEditConfig(LoopOptions):
     )
     gate_resolution: int = option(
         0,
-        "gate: voxels per side over [-1, 1]^3; 0: one voxel per pixel's footprint at the "
-        "object's centre (the training cameras' median, as the template's finest level), "
-        f"within [{GATE_RESOLUTION_AUTO[0]}, {GATE_RESOLUTION_AUTO[1]}]: the part's edge in "
-        "every render is as sharp as the pixels (the oxford-dinosaur's pixel is 1/370 of "
-        "the cube: a painted patch in view K against the target, 25.6 dB at 128 voxels, "
-        "30.6 at 370)",
+        "gate: voxels per side over [-1, 1]^3 (0: one voxel per pixel's footprint at the "
+        "object's centre, within "
+        f"[{GATE_RESOLUTION_AUTO[0]}, {GATE_RESOLUTION_AUTO[1]}], so the part's edge is as "
+        "sharp as the pixels)",
         low=0,
     )
     gate_vote: bool = option(
         True,
-        "gate, with the semantic masks: a voxel is the part's where more of the views' editable "
-        "pixels' samples fall in it than of the other pixels' (one view's mask's stray pixels "
-        "are outvoted; a hole the part's voxels enclose stays the part's), and the gate ends "
-        "where the surface of what may not change is nearer "
-        "(held-out dB, seeds 0 / 1: spot +2.09 / +1.30, figurine +0.98 / +0.19, toycar -0.41 / "
-        "-0.37; the unedited region up to 4 dB lower where the views' masks take more than the "
-        "part, as spot's rear views do; --no-gate-vote: every view's editable pixels count, the "
-        "gate spreads --gate-outer beyond them)",
+        "gate, with the semantic masks: a voxel is the part's where the views' editable pixels "
+        "outvote the others, and the gate ends where unchangeable surface is nearer "
+        "(--no-gate-vote: every view's editable pixels count, the gate spreads --gate-outer "
+        "beyond them)",
     )
     w_reg_field: float = option(
         1.0, "weight of |F_dT|^2 at surface points of unedited pixels (3D side of L_reg)", low=0
@@ -321,7 +299,7 @@ class TextureEditConfig(LoopOptions):
         low=0,
     )
     color_directions: int = option(
-        16, "colour term: random directions in RGB per step it is measured along", low=1
+        16, "colour term: random RGB directions per step along which it is computed", low=1
     )
     reference_mask: str = option(
         "auto",

@@ -135,8 +135,8 @@ class FitConfig(LoopOptions):
 
     preset: str = option(
         "default",
-        "time/quality trade-off: fast (~30 s), default (<= 5 min), quality (<= 20 min) on 2 "
-        "cores for 36 views of 256 px; sets --iterations, --batch-rays, --log2-table, "
+        "time/quality trade-off: fast (about a tenth of default's time), default, or quality "
+        "(about 4x default's time); sets --iterations, --batch-rays, --log2-table, "
         "--detail-steps, --density-hidden and --band-samples unless given",
         choices=list(PRESETS),
     )
@@ -156,12 +156,9 @@ class FitConfig(LoopOptions):
     )
     average_window: float = option(
         0.07,
-        "the saved field is a moving average of the weights over about this fraction of the "
-        "last steps (exponential, decay 1 - 1 / (fraction x steps) per step, from half-way: "
-        "~100 steps of the default 1500), against the noise of the last random batches "
-        "(0: the last step's weights; synthetic turntables +0.06 to +0.36 dB held-out object "
-        "PSNR, real captures +-0.04; 0.15 fits the templates 0.1 dB better still, its "
-        "texture edits within the 1.4 dB the fit's seed moves them)",
+        "the saved field is an exponential moving average of the weights over about this "
+        "fraction of the last steps (from half-way on), against the noise of the last random "
+        "batches (0: the last step's weights)",
         low=0.0,
         high=0.5,
     )
@@ -180,11 +177,9 @@ class FitConfig(LoopOptions):
     )
     detail_steps: int | None = option(
         None,
-        "steps of the colour-detail phase after the main steps: the density frozen, each "
-        "training ray's sample weights cached once, a second hash grid read only by the colour "
-        "learns the fine texture on many rays per step (recon/colour_detail.py; held-out object "
-        "PSNR: oxford-dinosaur 23.5 -> 25.0-25.1 dB, spot +1.2, figurine +0.5, toycar +0.1; "
-        "~1 min; 0: off; None: the preset's: fast 300, default and quality 1500)",
+        "steps of the colour-detail phase after the main steps: with the density frozen, a "
+        "second hash grid read only by the colour learns the fine texture (0: off; None: the "
+        "preset's: fast 300, default and quality 1500)",
         low=0,
     )
     detail_check: float = option(
@@ -206,8 +201,8 @@ class FitConfig(LoopOptions):
     max_resolution: int | None = option(
         None,
         "finest hash-grid resolution over [-1, 1]^3 (None: matched to the training images, one "
-        "finest cell per pixel at the object's centre: ~220 for 256 px turntables, ~370 for "
-        "the 400 px dinosaur; finer levels only memorise each view's pixels)",
+        "finest cell per pixel at the object's centre; finer levels only memorise each view's "
+        "pixels)",
         low=2,
     )
     sampler: str = option(
@@ -229,13 +224,10 @@ class FitConfig(LoopOptions):
     band_width: float = option(0.04, "band half-width d and proxy inflation, in run units", low=0.0)
     band_width_start: float | None = option(
         None,
-        "band half-width before the first proxy refinement (--refine-proxy) where the recon's "
-        "depth was the visual hull's alone in the views that see the proxy there (the hull "
-        "is only an outer bound: the surface may lie well inside); --band-width where stereo "
-        "measured it, linear in the share of the views between (this wide everywhere without "
-        "the run's visual_hull.npz). Narrowed by the same factor with each round to "
-        "--band-width after the last (None: 3 x --band-width when the proxy is refined; 0: "
-        "--band-width throughout; ignored without refinement)",
+        "band half-width before the first proxy refinement where the recon's depth came from "
+        "the visual hull alone (an outer bound), --band-width where stereo found it, linear in "
+        "between; narrowed each round to --band-width after the last (None: 3 x --band-width "
+        "when the proxy is refined; 0: --band-width throughout; ignored without refinement)",
         low=0.0,
     )
     uniform_coarse: int = option(64, "stratified coarse samples (uniform sampler)", low=1)
@@ -252,7 +244,7 @@ class FitConfig(LoopOptions):
         "after this fraction of the steps, replace the proxy by one fused from the field's own "
         "depth (NeuS-style refine loop; template/proxy_mesh.ply) and train the rest in its band "
         "(0: off; None: 0.2 with 4 rounds when the proxy came from hull + stereo depth, off for "
-        "dataset depth or runs without recon_report.json; templeSparseRing 17.5 -> 21.1 dB)",
+        "dataset depth or runs without recon_report.json)",
         low=0.0,
         high=0.9,
     )
@@ -270,22 +262,17 @@ class FitConfig(LoopOptions):
     refine_min_component: float = option(
         REFINE_MIN_COMPONENT,
         "separate parts of a refined proxy are kept down to this fraction of the largest one's "
-        "triangles (the carving can cut a part off at a thin joint: the dinosaur's hand before "
-        "its belly, 1.3 %%, was dropped at recon's 0.02, its band with it; held-out object PSNR "
-        "24.35 -> 25.00 dB on that draw; TSDF specks stay below 0.1 %%)",
+        "triangles (below recon's --min-component, as the carving can cut a part off at a thin "
+        "joint; too low keeps TSDF specks)",
         low=0.0,
         high=1.0,
     )
     train_supersample: int | None = option(
         None,
-        "train the pixels of the masks' edge (within one pixel of the mask's boundary, or of "
-        "the proxy's silhouette without masks: where a pixel is part object, part background) "
-        "on the box filter of s x s rays (the mean of the sub-pixel rays' colours against the "
-        "pixel, the way a camera integrates a pixel); --batch-rays counts the rays, so a batch "
-        "holds fewer pixels. None: 2 when every view's mask came with the capture (renders, "
-        "RGBA alpha: the boundary is where a pixel is part object; toycar/spot/figurine +0.8 / "
-        "+1.3 / +0.2-0.6 dB held-out object PSNR), else 1 (masks the recon estimated: the "
-        "dinosaur and the temple lose 0.1-0.2 dB with it)",
+        "train the pixels on the masks' edge (or the proxy's silhouette without masks) on the "
+        "box filter of s x s rays, as a camera integrates a pixel; --batch-rays counts rays, so "
+        "a batch holds fewer pixels (None: 2 when every view's mask came with the capture, "
+        "else 1)",
         low=1,
         high=4,
     )
@@ -310,13 +297,10 @@ class FitConfig(LoopOptions):
     eval_chunk: int = option(16384, "rays per chunk when rendering held-out views", low=1)
     supersample: int = option(
         2,
-        "rays per pixel side when rendering this template: held-out metrics, `sine render`, "
-        "`sine eval`, snapshots, edits (s x s rays box-filtered, as a camera pixel integrates "
-        "light; s^2 times the render time; 1: one ray through each pixel centre, 4x faster; "
-        "toycar/spot/figurine +0.9/+1.8/+1.1 dB held-out object PSNR at 2). With s > 1 the "
-        "pixels a silhouette crosses (their rays' opacities differ) are rendered again with "
-        "2s x 2s rays (1-4 %% of the pixels, 1.1-1.5x the time; at 2: figurine +0.14 / +0.18, "
-        "spot +0.14, toycar +0.06 dB, as much as 3 x 3 everywhere at half its time)",
+        "rays per pixel side when rendering this template (held-out metrics, `sine render`, "
+        "`sine eval`, snapshots, edits): s x s rays box-filtered, s^2 times the render time "
+        "(1: one ray through each pixel centre). With s > 1 the pixels a silhouette crosses "
+        "are rendered again with 2s x 2s rays",
         low=1,
     )
 
