@@ -76,99 +76,86 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from edit.geometry_edit import GeometryEditConfig, run_geometry_edit
-
     hybrid_only = ("target_geometry", "target_texture", "region_texture")
     given = [f"--{k.replace('_', '-')}" for k in hybrid_only if getattr(args, k) is not None]
     if args.mode != "hybrid" and given:
         raise SineError(f"{' and '.join(given)}: for --mode hybrid only (other modes: --target)")
-    if args.mode == "texture":
-        return run_texture(args)
-    if args.mode == "hybrid":
-        return run_hybrid(args)
+    learn, summary = {
+        "geometry": (_learn_geometry, _geometry_summary),
+        "texture": (_learn_texture, _texture_summary),
+        "hybrid": (_learn_hybrid, _hybrid_summary),
+    }[args.mode]
+    metrics = learn(args, force=args.force, progress=not args.quiet)
+    where = args.run / "edits" / args.name
+    if metrics.get("skipped"):
+        print(f"edit {args.name}: already done with these options -> {where} (--force redoes it)")
+    else:
+        print(summary(args, metrics, where))
+    return 0
+
+
+def _learn_geometry(args: argparse.Namespace, **common) -> dict:
+    from edit.geometry_edit import GeometryEditConfig, run_geometry_edit
+
     if args.reference is not None:
         raise SineError("--reference is for --mode texture or hybrid")
     if args.target is None:
         raise SineError("--target is required (the edited image of view K)")
     cfg = from_args(GeometryEditConfig, args)
-    metrics = run_geometry_edit(
-        args.run,
-        args.view,
-        args.target,
-        args.name,
-        cfg,
-        mask=args.mask,
-        region=args.region,
-        force=args.force,
-        progress=not args.quiet,
+    return run_geometry_edit(
+        args.run, args.view, args.target, args.name, cfg, args.mask, args.region, **common
     )
-    where = args.run / "edits" / args.name
-    if already_done(args.name, where, metrics):
-        return 0
-    print(
+
+
+def _geometry_summary(args: argparse.Namespace, metrics: dict, where: Path) -> str:
+    return (
         f"edit {args.name} ({metrics['method']}): {metrics['iterations']} steps in "
         f"{metrics['train_seconds']:.0f} s; edited view: object PSNR "
         f"{metrics['edited_view_psnr_object']:.2f} dB, silhouette IoU "
         f"{metrics['edited_view_silhouette_iou']:.3f} -> {where} (look at edited_view.png, "
         f"prior_preview.png and previews/)"
     )
-    return 0
 
 
-def already_done(name: str, where, metrics: dict) -> bool:
-    """Says so when the edit was skipped as finished with these options."""
-    if metrics.get("skipped"):
-        print(f"edit {name}: already done with these options -> {where} (--force redoes it)")
-    return bool(metrics.get("skipped"))
-
-
-def run_texture(args: argparse.Namespace) -> int:
+def _learn_texture(args: argparse.Namespace, **common) -> dict:
     from edit.texture_edit import TextureEditConfig, run_texture_edit
 
     if args.mask is not None:
         raise SineError("--mask is for --mode geometry (a texture edit keeps the silhouette)")
     cfg = from_args(TextureEditConfig, args)
-    metrics = run_texture_edit(
-        args.run,
-        args.view,
-        args.target,
-        args.name,
-        cfg,
-        region=args.region,
-        reference=args.reference,
-        force=args.force,
-        progress=not args.quiet,
+    return run_texture_edit(
+        args.run, args.view, args.target, args.name, cfg, args.region, args.reference, **common
     )
-    where = args.run / "edits" / args.name
-    if already_done(args.name, where, metrics):
-        return 0
+
+
+def _texture_summary(args: argparse.Namespace, metrics: dict, where: Path) -> str:
     fit = ""
     if "edited_view_psnr_region" in metrics:
         fit = f"edited part of view {args.view}: PSNR {metrics['edited_view_psnr_region']:.2f} dB, "
     kept = metrics.get("unedited_view_psnr")
     kept = f"unedited pixels {kept:.2f} dB" if kept is not None else "no unedited pixels"
-    print(
+    lines = [
         f"edit {args.name} (texture, {metrics['method']}): {metrics['iterations']} steps in "
         f"{metrics['train_seconds']:.0f} s; {fit}{kept} -> {where} (look at edited_view.png "
         f"and previews/)"
-    )
+    ]
     mirror = metrics.get("mirror") or {}
-    if mirror.get("pixels"):  # --symmetric-auto's verdict
+    if mirror.get("pixels"):  # the automatic mirroring's verdict
         done = "mirrored" if mirror["mirrored"] else "not mirrored"
-        print(
+        lines.append(
             f"the painting {done} across the proxy's mirror plane: the far side's masks agree "
             f"with its mirror image at IoU {mirror['agreement']:.2f} "
-            f"(--symmetric-agreement {cfg.symmetric_agreement})"
+            f"(symmetric_agreement {args.symmetric_agreement})"
         )
-    return 0
+    return "\n".join(lines)
 
 
-def run_hybrid(args: argparse.Namespace) -> int:
+def _learn_hybrid(args: argparse.Namespace, **common) -> dict:
     from edit.geometry_edit import GeometryEditConfig
     from edit.hybrid_edit import run_hybrid_edit
     from edit.texture_edit import TextureEditConfig
 
-    metrics = run_hybrid_edit(
+    return run_hybrid_edit(
         args.run,
         args.view,
         args.name,
@@ -181,19 +168,17 @@ def run_hybrid(args: argparse.Namespace) -> int:
         mask=args.mask,
         region=args.region,
         region_texture=args.region_texture,
-        force=args.force,
-        progress=not args.quiet,
+        **common,
     )
-    where = args.run / "edits" / args.name
-    if already_done(args.name, where, metrics):
-        return 0
+
+
+def _hybrid_summary(args: argparse.Namespace, metrics: dict, where: Path) -> str:
     fit = ""
     if "edited_view_psnr_region" in metrics:
         fit = f", recoloured part PSNR {metrics['edited_view_psnr_region']:.2f} dB"
-    print(
+    return (
         f"edit {args.name} (hybrid): {metrics['geometry_iterations']} geometric + "
         f"{metrics['texture_iterations']} texture steps in {metrics['train_seconds']:.0f} s; "
         f"view {args.view}: silhouette IoU {metrics['edited_view_silhouette_iou']:.3f}{fit} -> "
         f"{where} (look at edited_view.png, geometry/prior_preview.png and previews/)"
     )
-    return 0

@@ -36,7 +36,6 @@ proxy band for sampling.
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import dataclasses
 import time
@@ -49,33 +48,38 @@ import torch
 
 from edit import geometry_losses as losses
 from edit.edit_inputs import difference_region, read_region, read_target
+from edit.edit_stage import (
+    EDIT_INPUTS,
+    PATH_KEYS,
+    edit_trainer,
+    editing,
+    input_digests,
+    loop_metrics,
+    open_edit,
+    pick_view,
+    publish_edit,
+    save_edit_field,
+)
 from edit.editing_field import EditingField, combine, edited_query, warp_vertices
 from edit.editing_scene import edited_sampler, scene_from_folder
 from edit.shape_prior import PriorMesh, build_prior_mesh, object_axes
 from edit.template_scene import load_template_scene
 from recon.fit import load_fitted, make_sampler
-from recon.formats import FORMAT_VERSIONS
 from recon.rundir import RunDir
 from recon.training import RUNTIME_KEYS as LOOP_RUNTIME_KEYS
 from recon.training import (
     LoopOptions,
-    Trainer,
-    discard_unstarted,
     exponential_decay,
     loop_options,
 )
 from render.configs import option, to_dict, validate
 from render.device import pick_device, torch_threads
-from render.errors import SineError
 from render.io import (
     atomic_path,
-    file_sha256,
-    save_torch,
     write_image,
     write_json,
     write_mask,
 )
-from render.locks import lock_entry
 from render.metrics import psnr
 from render.raycast import MeshRaycaster
 from render.renderer import render_image, render_rays
@@ -192,13 +196,6 @@ class EditSetup:
     prior: PriorMesh | None
 
 
-def pick_view(run: RunDir, view: int):
-    frames = run.load_cameras().frames
-    if not 0 <= view < len(frames):
-        raise SineError(f"--view {view} is out of range: the run has views 0..{len(frames) - 1}")
-    return frames[view]
-
-
 def prepare(
     run: RunDir, out: Path, view: int, target, mask, region, cfg, field, background, sampler, device
 ) -> EditSetup:
@@ -269,37 +266,6 @@ def save_prior(out: Path, prior: PriorMesh, run: RunDir) -> None:
 
 
 # ---- training -----------------------------------------------------------------------------
-# what an edit is made from besides the user's files: an edit of a template fitted again since
-# (or of a run whose recon changed) is learnt again
-EDIT_INPUTS = ("cameras.json", "proxy_mesh.ply", "template/field.pt")
-
-
-# the user's files' paths: recorded, but an edit is compared by their content (the same target
-# under another spelling of its path is the same edit; an image edited in place is a new one)
-PATH_KEYS = ("target", "mask", "region", "reference", "texture_target", "texture_region")
-EDIT_OUTPUTS = ("edit_field.pt",)  # a finished edit whose field does not load is learnt again
-
-
-@contextlib.contextmanager
-def editing(out: Path):
-    """For the block that learns the edit RUN/edits/NAME (`out`): holds the edit's lock (a second
-    process on the same edit is refused) and removes the .partial folder of an edit that fails
-    a check before its first checkpoint."""
-    with lock_entry(out, f"edit {out.name} of {out.parent.parent}"), discard_unstarted(out):
-        yield
-
-
-def input_digests(target, mask, region) -> dict:
-    """The user's files by path and content (PATH_KEYS: only the content is compared)."""
-    out = {}
-    for key, path in (("target", target), ("mask", mask), ("region", region)):
-        if path is not None and not Path(path).is_file():
-            raise SineError(f"--{key} {path} does not exist")
-        out[key] = None if path is None else str(path)
-        out[f"{key}_sha256"] = None if path is None else file_sha256(path)
-    return out
-
-
 def _image_rays(camera, device):
     o, d = camera.rays()
     return torch.from_numpy(o).to(device), torch.from_numpy(d).to(device)
@@ -513,14 +479,8 @@ def run_geometry_edit(
     stop_at: int | None = None,
 ) -> dict:
     """Learns a geometric edit into RUN/edits/NAME; returns its metrics (resumes when re-run)."""
-    cfg = cfg or GeometryEditConfig()
-    validate(cfg)
-    run = RunDir(run_dir)
-    run.require("cameras")
-    pick_view(run, view)
-    out = run.edit(name)
-    if out.exists() and not out.is_dir():
-        raise SineError(f"{out} exists and is not a folder")
+    cfg = validate(cfg or GeometryEditConfig())
+    run, out = open_edit(run_dir, view, name)
     device = pick_device(cfg.device)
     with editing(out), torch_threads(cfg.threads):
         return _edit(run, out, view, target, mask, region, cfg, device, force, progress, stop_at)
@@ -534,19 +494,16 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
         **input_digests(target, mask, region),
         **to_dict(cfg),
     }
-    trainer = Trainer(
+    trainer = edit_trainer(
         out,
-        f"edit {out.name}",
         settings,
         (*RUNTIME_KEYS, *PATH_KEYS),
-        **loop_options(cfg),
+        loop_options(cfg),
+        to_dict(GeometryEditConfig()),
+        EDIT_INPUTS,
         force=force,
         progress=progress,
         advice="a lower --lr-deform (or --lr-naive)",
-        format_version=FORMAT_VERSIONS["edit"],
-        defaults=to_dict(GeometryEditConfig()),
-        inputs=run.inputs(*EDIT_INPUTS),
-        outputs=EDIT_OUTPUTS,
     )
     done = trainer.finished()
     if done is not None:
@@ -575,24 +532,9 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
 
     # ---- save the result and score the edited view ----
     if cfg.method == "naive":
-        save_torch(
-            work / "edit_field.pt",
-            {
-                "format_version": FORMAT_VERSIONS["edit"],
-                "method": "naive",
-                "field": field.state_dict(),
-            },
-        )
+        save_edit_field(work, "naive", field=field.state_dict())
     else:
-        save_torch(
-            work / "edit_field.pt",
-            {
-                "format_version": FORMAT_VERSIONS["edit"],
-                "method": "ours",
-                "editing": editing.state_dict(),
-                "band_width": cfg.band_width,
-            },
-        )
+        save_edit_field(work, "ours", editing=editing.state_dict(), band_width=cfg.band_width)
     scene = scene_from_folder(run, work, 1.0, device)
     rendered = scene.render_view(setup.camera)
     obj = (setup.target_alpha > 0.5) | (rendered["opacity"] > 0.5)
@@ -606,11 +548,8 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
         "edited_view_silhouette_iou": float(
             (pred_sil & tgt_sil).sum() / max((pred_sil | tgt_sil).sum(), 1)
         ),
-        "iterations": trainer.step,
-        "train_seconds": trainer.seconds,
-        "total_seconds": time.perf_counter() - t_start,
+        **loop_metrics(trainer, device),
         "final_losses": {k: v for k, v in trainer.log[-1].items() if k not in ("step", "seconds")},
-        "device": str(device),
     }
     if setup.prior is not None:
         plane = setup.prior.mirror_plane
@@ -625,9 +564,7 @@ def _edit(run, out, view, target, mask, region, cfg, device, force, progress, st
         np.concatenate([setup.template_rgb, rendered["rgb"], setup.target_rgb], axis=1),
     )
     write_previews(run, scene, work / "previews", cfg.previews, device)
-    write_json(work / "metrics.json", metrics)
-    trainer.publish(settings=cfg)
-    return metrics
+    return publish_edit(trainer, metrics, t_start, cfg)
 
 
 def write_previews(run: RunDir, scene, folder: Path, n: int, device) -> None:

@@ -53,17 +53,18 @@ import numpy as np
 import torch
 
 from edit import geometry_edit, texture_edit
-from edit.editing_scene import deformed_template, scene_from_folder
-from edit.geometry_edit import (
-    EDIT_OUTPUTS,
+from edit.edit_stage import (
     PATH_KEYS,
-    GeometryEditConfig,
+    edit_trainer,
     editing,
-    geometry_training,
     input_digests,
-    pick_view,
-    with_fit_band,
+    loop_metrics,
+    open_edit,
+    publish_edit,
+    save_edit_field,
 )
+from edit.editing_scene import deformed_template, scene_from_folder
+from edit.geometry_edit import GeometryEditConfig, geometry_training, with_fit_band
 from edit.template_scene import load_template_scene
 from edit.texture_edit import (
     TextureEditConfig,
@@ -72,13 +73,11 @@ from edit.texture_edit import (
     uses_part_colour,
     write_previews,
 )
-from recon.formats import FORMAT_VERSIONS
-from recon.rundir import RunDir
-from recon.training import Trainer, exponential_decay, loop_options
+from recon.training import exponential_decay, loop_options
 from render.configs import to_dict, validate
 from render.device import pick_device, torch_threads
 from render.errors import SineError
-from render.io import file_sha256, save_torch, write_image, write_json
+from render.io import file_sha256, write_image, write_json
 from render.metrics import psnr
 from render.template_field import freeze
 
@@ -135,13 +134,8 @@ def run_hybrid_edit(
         )
     if reference is not None and not Path(reference).is_file():
         raise SineError(f"reference image {reference} does not exist")
-    run = RunDir(run_dir)
-    run.require("cameras")
-    pick_view(run, view)
+    run, out = open_edit(run_dir, view, name)
     texture_edit.require_features(run, tcfg)  # before the geometric steps, not after
-    out = run.edit(name)
-    if out.exists() and not out.is_dir():
-        raise SineError(f"{out} exists and is not a folder")
     device = pick_device(gcfg.device)
     regions = (region, region if region_texture is None else region_texture)
     with editing(out), torch_threads(gcfg.threads):
@@ -198,20 +192,17 @@ def _edit(
     runtime = tuple(f"geometry.{k}" for k in geometry_edit.RUNTIME_KEYS)
     runtime += tuple(f"texture.{k}" for k in texture_edit.RUNTIME_KEYS) + PATH_KEYS
     n_geometry, n_texture = gcfg.iterations, tcfg.iterations
-    trainer = Trainer(
+    trainer = edit_trainer(
         out,
-        f"edit {out.name}",
         settings,
         runtime,
-        **{**loop_options(gcfg), "iterations": n_geometry + n_texture},
+        {**loop_options(gcfg), "iterations": n_geometry + n_texture},
+        _options(GeometryEditConfig(), TextureEditConfig()),
+        texture_edit.TEXTURE_INPUTS,
         force=force,
         progress=progress,
         manual_backward=True,
         advice="lower learning rates (--lr-deform, --lr-grid, --lr-compositor)",
-        format_version=FORMAT_VERSIONS["edit"],
-        defaults=_options(GeometryEditConfig(), TextureEditConfig()),
-        inputs=run.inputs(*texture_edit.TEXTURE_INPUTS),
-        outputs=EDIT_OUTPUTS,
     )
     done = trainer.finished()
     if done is not None:
@@ -320,19 +311,16 @@ def _edit(
 
     # ---- save the result and score the edited view ----
     tex_setup = texture_phase(False)["setup"]
-    save_torch(
-        work / "edit_field.pt",
-        {
-            "format_version": FORMAT_VERSIONS["edit"],
-            "method": "hybrid",
-            "band_width": float(gcfg.band_width),
-            "geometry": {"editing": geo_editing.state_dict()},
-            "texture": {
-                "editing": tex_editing.state_dict(),
-                "compositor": None if compositor is None else compositor.state_dict(),
-                "compositor_region": bool(tcfg.gate),  # g = the gate rendered
-                "part_colour": uses_part_colour(tcfg),
-            },
+    save_edit_field(
+        work,
+        "hybrid",
+        band_width=float(gcfg.band_width),
+        geometry={"editing": geo_editing.state_dict()},
+        texture={
+            "editing": tex_editing.state_dict(),
+            "compositor": None if compositor is None else compositor.state_dict(),
+            "compositor_region": bool(tcfg.gate),  # g = the gate rendered
+            "part_colour": uses_part_colour(tcfg),
         },
     )
     scene = scene_from_folder(run, work, 1.0, device)
@@ -350,11 +338,10 @@ def _edit(
         "compositor": bool(tcfg.compositor),
         "geometry_iterations": n_geometry,
         "texture_iterations": n_texture,
-        "iterations": trainer.step,
+        **loop_metrics(trainer, device),
         "edited_view_silhouette_iou": _iou(rendered["opacity"] > 0.5, target_sil),
         "template_view_silhouette_iou": _iou(geo_setup.template_alpha > 0.5, target_sil),
         "unedited_view_psnr": psnr(rgb[kept], template_rgb[kept]) if kept.any() else None,
-        "train_seconds": trainer.seconds,
         "final_losses": {
             "geometry": _last_terms([e for e in trainer.log if e["step"] <= n_geometry]),
             "texture": _last_terms([e for e in trainer.log if e["step"] > n_geometry]),
@@ -362,7 +349,6 @@ def _edit(
         "mask_source": phase["mask_source"],
         "prior_handles": int(len(geo_setup.prior.handle_ids)),
         "prior_max_displacement": float(geo_setup.prior.displacement.max()),
-        "device": str(device),
     }
     panels = [template_rgb, rgb, geo_setup.target_rgb]
     if tex_setup.target_rgb is not None:
@@ -373,10 +359,7 @@ def _edit(
             panels.append(goal)
     write_image(work / "edited_view.png", np.concatenate(panels, axis=1))
     metrics.update(write_previews(run, scene, work / "previews", tcfg.previews, tex_setup, device))
-    metrics["total_seconds"] = time.perf_counter() - t_start
-    write_json(work / "metrics.json", metrics)
-    trainer.publish(settings={**to_dict(tcfg), **to_dict(gcfg)})
-    return metrics
+    return publish_edit(trainer, metrics, t_start, {**to_dict(tcfg), **to_dict(gcfg)})
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:

@@ -112,8 +112,19 @@ from torch import nn
 from edit.compositor import HALO, HEADS, Compositor, composite_hwc, fit_shared_transform
 from edit.deferred import DeferredImage, deferred_backward, image_tiles
 from edit.edit_inputs import difference_region, read_region, read_target
+from edit.edit_stage import (
+    EDIT_INPUTS,
+    PATH_KEYS,
+    edit_trainer,
+    editing,
+    input_digests,
+    loop_metrics,
+    open_edit,
+    pick_view,
+    publish_edit,
+    save_edit_field,
+)
 from edit.editing_field import EditingField
-from edit.geometry_edit import EDIT_INPUTS, EDIT_OUTPUTS, PATH_KEYS, editing, input_digests
 from edit.geometry_losses import photometric
 from edit.texture_views import (
     LiftedRegion,
@@ -126,17 +137,15 @@ from edit.texture_views import (
     scaled_camera,
 )
 from recon.fit import load_fitted, make_sampler
-from recon.formats import FORMAT_VERSIONS
 from recon.rundir import RunDir
 from recon.training import RUNTIME_KEYS as LOOP_RUNTIME_KEYS
-from recon.training import LoopOptions, Trainer, loop_options
+from recon.training import LoopOptions, loop_options
 from render.configs import option, to_dict, validate
 from render.device import pick_device, torch_threads
 from render.errors import SineError
 from render.io import (
     file_sha256,
     read_image_rgba,
-    save_torch,
     write_image,
     write_json,
     write_mask,
@@ -501,13 +510,6 @@ def options_in_effect(cfg: TextureEditConfig, reference) -> TextureEditConfig:
     return replace(cfg, w_color=0.0, reference_mask="none")
 
 
-def pick_view(run: RunDir, view: int):
-    frames = run.load_cameras().frames
-    if not 0 <= view < len(frames):
-        raise SineError(f"--view {view} is out of range: the run has views 0..{len(frames) - 1}")
-    return frames[view]
-
-
 def prepare(
     run, out, view, target, region, reference, cfg, template, bg, sampler, device, on_object=False
 ):
@@ -706,12 +708,7 @@ def run_texture_edit(
         )
     if cfg.method == "naive" and target is None:
         raise SineError("--method naive needs --target (it fits view K's pixels)")
-    run = RunDir(run_dir)
-    run.require("cameras")
-    pick_view(run, view)
-    out = run.edit(name)
-    if out.exists() and not out.is_dir():
-        raise SineError(f"{out} exists and is not a folder")
+    run, out = open_edit(run_dir, view, name)
     device = pick_device(cfg.device)
     with editing(out), torch_threads(cfg.threads):
         return _edit(
@@ -732,20 +729,17 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
         "reference_sha256": None if reference is None else file_sha256(reference),
         **to_dict(cfg),
     }
-    trainer = Trainer(
+    trainer = edit_trainer(
         out,
-        f"edit {out.name}",
         settings,
         (*RUNTIME_KEYS, *PATH_KEYS),
-        **loop_options(cfg),
+        loop_options(cfg),
+        to_dict(TextureEditConfig()),
+        TEXTURE_INPUTS,
         force=force,
         progress=progress,
         manual_backward=cfg.method == "ours",
         advice="lower learning rates (--lr-grid, --lr-compositor, --lr-naive)",
-        format_version=FORMAT_VERSIONS["edit"],
-        defaults=to_dict(TextureEditConfig()),
-        inputs=run.inputs(*TEXTURE_INPUTS),
-        outputs=EDIT_OUTPUTS,
     )
     done = trainer.finished()
     if done is not None:
@@ -775,26 +769,16 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
     from edit.editing_scene import scene_from_folder
 
     if cfg.method == "naive":
-        save_torch(
-            work / "edit_field.pt",
-            {
-                "format_version": FORMAT_VERSIONS["edit"],
-                "method": "naive",
-                "field": field.state_dict(),
-            },
-        )
+        save_edit_field(work, "naive", field=field.state_dict())
     else:
-        save_torch(
-            work / "edit_field.pt",
-            {
-                "format_version": FORMAT_VERSIONS["edit"],
-                "method": "texture",
-                "editing": editing.state_dict(),
-                "compositor": None if compositor is None else compositor.state_dict(),
-                "compositor_region": bool(cfg.gate),  # g = the gate rendered (else from I_m)
-                "part_colour": uses_part_colour(cfg),  # the head's P (module doc)
-                "band_width": float(fit_cfg.band_width),
-            },
+        save_edit_field(
+            work,
+            "texture",
+            editing=editing.state_dict(),
+            compositor=None if compositor is None else compositor.state_dict(),
+            compositor_region=bool(cfg.gate),  # g = the gate rendered (else from I_m)
+            part_colour=uses_part_colour(cfg),  # the head's P (module doc)
+            band_width=float(fit_cfg.band_width),
         )
     scene = scene_from_folder(run, work, 1.0, device)
     rendered = np.clip(scene.render_view(setup.camera)["rgb"], 0, 1)
@@ -808,10 +792,8 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
         "unedited_view_psnr": psnr(rendered[~inside], template_rgb[~inside])
         if (~inside).any()
         else None,
-        "iterations": trainer.step,
-        "train_seconds": trainer.seconds,
+        **loop_metrics(trainer, device),
         "final_losses": {k: v for k, v in trainer.log[-1].items() if k not in ("step", "seconds")},
-        "device": str(device),
     }
     if cfg.method == "ours":
         metrics["mask_source"] = mask_source
@@ -830,10 +812,7 @@ def _edit(run, out, view, target, region, reference, cfg, device, force, progres
         panels.append(setup.target_rgb)
     write_image(work / "edited_view.png", np.concatenate(panels, axis=1))
     metrics.update(write_previews(run, scene, work / "previews", cfg.previews, setup, device))
-    metrics["total_seconds"] = time.perf_counter() - t_start
-    write_json(work / "metrics.json", metrics)
-    trainer.publish(settings=cfg)
-    return metrics
+    return publish_edit(trainer, metrics, t_start, cfg)
 
 
 def _naive(cfg, trainer, template, background, sampler, setup: TextureSetup, device):
