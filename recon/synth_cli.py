@@ -14,7 +14,7 @@ labels/ (uint16 part ids), parts.json, transforms.json (nerfstudio, OpenGL axes)
 mesh.ply (the normalised ground-truth mesh with vertex colours) and synth.json. With --edit
 geometric/texture, the edited object is rendered from the same cameras into edits/<kind>/ with
 edit.json.
-Every 8th view (0, 8, 16, ...) is a held-out "test" view.
+Every 8th view (7, 15, 23, ...) is a held-out "test" view.
 """
 
 
