@@ -118,3 +118,34 @@ def test_settings_come_from_the_file_then_set_then_flags(tmp_path):
     write_settings(tmp_path / "saved.toml", FitConfig(iterations=9, background="black"))
     args = _fit_settings("--config", str(tmp_path / "saved.toml"))
     assert from_args(FitConfig, args) == FitConfig(iterations=9, background="black")
+
+
+def _readme_commands() -> list[list[str]]:
+    """Every `sine ...` command line of README.md's code blocks, as argv (comments cut, the
+    placeholders K / CAPTURE made concrete)."""
+    import shlex
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    commands, block = [], False
+    for line in text.splitlines():
+        if line.strip().startswith("```"):
+            block = not block
+            continue
+        words = line.split("#")[0].replace("|", " | ").strip()
+        if (block or line.startswith("    ")) and words.startswith("sine "):
+            argv = shlex.split(words.split(" | ")[0].replace(" K ", " 3 "))[1:]
+            commands.append(argv)
+    return commands
+
+
+def test_every_readme_command_parses_with_its_settings():
+    commands = _readme_commands()
+    assert len(commands) >= 15
+    for argv in commands:
+        if "--help-all" in argv or "--config" in argv:  # exits / reads a run's file
+            argv = [a for a in argv if a != "--help-all"]
+            if "--config" in argv:
+                k = argv.index("--config")
+                argv = argv[:k] + argv[k + 2 :]
+        args = sine_cli.build_parser(argv).parse_args(argv)
+        resolve_settings(args)  # every --set names a setting of the right type
