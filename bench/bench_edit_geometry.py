@@ -17,7 +17,7 @@ excluded) against the ground truth:
 - heldout_ssim (whole image), heldout_silhouette_iou (opacity > 0.5 vs GT mask);
 - unedited_psnr: the edit vs the template's own rendering outside the edited part: object pixels
   whose visible surface the GT edit does not move, in the GT original and in the GT edit (from
-  the synth's depth maps and `recon.synth.gt_displacement`), and whose GT colour did not change;
+  the synth's depth maps and `recon.synth_edits.gt_displacement`), and whose GT colour did not change;
   unedited_psnr_pixels: every object pixel whose GT colour and mask did not change;
 - template_fidelity: the template against the unedited GT on the same views (object pixels).
 Methods: `template` (no edit), `ours`, `naive` (the single-view fine-tune), the oracles (the
@@ -117,10 +117,10 @@ def pick_edit_view(run, syn: Path) -> int:
 
 def edited_part(syn: Path, cam, params: dict, gt) -> np.ndarray:
     """[H, W] bool: pixels of the synth camera `cam` whose visible surface the GT edit moves
-    (`recon.synth.gt_displacement` > 0) in the GT original or in the GT edit (synth depth,
+    (`recon.synth_edits.gt_displacement` > 0) in the GT original or in the GT edit (synth depth,
     synth units)."""
     from edit.shape_prior import back_project
-    from recon.synth import gt_displacement
+    from recon.synth_edits import gt_displacement
     from render.io import read_depth
 
     inside = np.zeros(cam.height * cam.width, bool)
@@ -136,12 +136,12 @@ def edited_part(syn: Path, cam, params: dict, gt) -> np.ndarray:
 # ---- oracles: the ground truth put in place of one stage of the method ----------------------
 def gt_move(run, syn: Path):
     """(move, inverse): points [N, 3] in run units -> the same points moved by the GT edit, and
-    back (run units). The GT displacement (`recon.synth.gt_displacement`, synth units) is
+    back (run units). The GT displacement (`recon.synth_edits.gt_displacement`, synth units) is
     carried through the recon's normalisation (x_run = scale * R (x_in - center)). The inverse
     solves x + d(x) = y by fixed-point iteration x <- y - d(x) from x = y (a stretch), and for a
     part scaled about its centre c also from x = c + (y - c) / scale (where y lies outside the
     original part, the first start never finds it): the start that solves it better wins."""
-    from recon.synth import gt_displacement, load_gt_edit
+    from recon.synth_edits import gt_displacement, load_gt_edit
     from render.mesh_export import denormalize_points
 
     cams = run.load_cameras()
@@ -254,7 +254,7 @@ def score(run, syn: Path, scene, template, views: list[int]) -> tuple[dict, list
     from skimage.metrics import structural_similarity
 
     from recon.rundir import RunDir
-    from recon.synth import load_gt_edit
+    from recon.synth_edits import load_gt_edit
     from render.io import read_image, read_mask
     from render.metrics import psnr
 

@@ -3,7 +3,7 @@
 Each object is a union of trimesh primitives (overlaps are fine for ray casting) with named parts
 and a procedural texture computed from the 3D position (stripes, checkers, windows, hubcaps), so
 it has the detail that feature matching and radiance fields need. Coordinates are z-up, in the
-object's own units; `recon.synth.normalise` brings them to run units.
+object's own units; `recon.synth_mesh.normalise` brings them to run units.
 """
 
 from __future__ import annotations

@@ -17,7 +17,8 @@ from recon.masks import (
     segment_foreground,
     segment_salient,
 )
-from recon.synth import SynthConfig, parse_background, synthesize
+from recon.synth import SynthConfig, synthesize
+from recon.synth_render import parse_background
 from render.cameras import load_cameras
 from render.errors import SineError
 from render.io import read_image, read_mask, write_image

@@ -14,7 +14,8 @@ import pytest
 
 from recon.ingest import IngestConfig, detect_format, ingest_capture
 from recon.rundir import RunDir
-from recon.synth import NERF_SYNTHETIC_DIR, SynthConfig, synthesize
+from recon.synth import SynthConfig, synthesize
+from recon.synth_output import NERF_SYNTHETIC_DIR
 from render.cameras import OPENCV_TO_OPENGL, load_cameras
 from render.errors import SineError
 from render.io import read_image, read_json, read_mask

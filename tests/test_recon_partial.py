@@ -13,7 +13,7 @@ import shutil
 import numpy as np
 import pytest
 
-from recon import synth
+from recon import synth, synth_output, synth_render
 from recon.depth import bounded_depths, visual_hull
 from recon.visual_hull import UnboundedHull, hull_bounds, touches_border
 from render.errors import SineError
@@ -29,7 +29,7 @@ def figurine():
 
 def cameras(kind: str, n: int = 12, w: int = 96, h: int = 72, radius: float = 3.2):
     """uncut | zoom_most (8 of 12 views zoomed) | zoom_all | patchwork."""
-    cams = synth.ring_cameras(n, w, h, (20.0,), radius=radius)
+    cams = synth_render.ring_cameras(n, w, h, (20.0,), radius=radius)
     out = []
     for i, c in enumerate(cams):
         if kind == "zoom_most" and i % 3 != 0 or kind == "zoom_all":
@@ -138,8 +138,8 @@ def test_patchwork_capture_stops_with_one_message(figurine):
 
 def write_capture(out, cams, mesh) -> None:
     """A `sine synth`-like capture of `mesh` seen by `cams`, with masks, without depth."""
-    views = synth.render_views(mesh, cams)
-    synth.write_views(out, cams, views, mesh)
+    views = synth_render.render_views(mesh, cams)
+    synth_output.write_views(out, cams, views, mesh)
     shutil.rmtree(out / "depth")
     data = json.loads((out / "transforms.json").read_text())
     for frame in data["frames"]:
@@ -164,7 +164,7 @@ def reconstruct(root, kind: str, mesh) -> dict:
     from recon.pipeline import ReconConfig, run_recon
     from recon.rundir import RunDir
 
-    radius = synth.fit_camera_distance(mesh.vertices, 12, 96, 72)
+    radius = synth_render.fit_camera_distance(mesh.vertices, 12, 96, 72)
     write_capture(root / "cap", cameras(kind, radius=radius), mesh)
     run = RunDir(root / "run")
     cfg = ReconConfig(hull_resolution=64, tsdf_voxel_size=1 / 64, target_triangles=4000)
@@ -214,7 +214,7 @@ def test_partial_capture_message_when_too_little_gets_depth(figurine, tmp_path):
     from recon.rundir import RunDir
 
     mesh = figurine[0]
-    radius = synth.fit_camera_distance(mesh.vertices, 12, 96, 72)
+    radius = synth_render.fit_camera_distance(mesh.vertices, 12, 96, 72)
     write_capture(tmp_path / "cap", cameras("overview", radius=radius), mesh)
     cfg = ReconConfig(hull_resolution=64, min_depth_fraction=0.97)
     with pytest.raises(SineError, match="of the masked pixels got depth") as err:
@@ -297,7 +297,7 @@ def test_patchwork_capture_with_its_poses_stops_in_the_poses_stage(figurine, tmp
     from recon.rundir import RunDir
 
     mesh = figurine[0]
-    radius = synth.fit_camera_distance(mesh.vertices, 12, 96, 72)
+    radius = synth_render.fit_camera_distance(mesh.vertices, 12, 96, 72)
     write_capture(tmp_path / "cap", cameras("patchwork", radius=radius), mesh)
     with pytest.raises(UnboundedHull, match="the views do not bound the object"):
         run_recon(tmp_path / "cap", RunDir(tmp_path / "run"), ReconConfig(), IngestConfig())

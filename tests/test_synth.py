@@ -10,17 +10,10 @@ import cv2
 import numpy as np
 import pytest
 
-from recon.synth import (
-    SynthConfig,
-    load_mesh_file,
-    load_source,
-    normalise,
-    render_views,
-    ring_cameras,
-    sample_texture,
-    stretch_displacement,
-    synthesize,
-)
+from recon.synth import SynthConfig, load_source, sample_texture, synthesize
+from recon.synth_edits import stretch_displacement
+from recon.synth_mesh import load_mesh_file, normalise
+from recon.synth_render import render_views, ring_cameras
 from render.cameras import cameras_from_transforms, load_cameras
 from render.errors import SineError
 from render.io import read_depth, read_image, read_label_map, read_mask

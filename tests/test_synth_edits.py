@@ -12,15 +12,14 @@ import pytest
 
 from recon.mesh_data import decal_pattern
 from recon.procedural import CABIN
-from recon.synth import (
+from recon.synth import SynthConfig, synthesize
+from recon.synth_edits import (
     GT_DISPLACEMENT_FILE,
-    Normalisation,
-    SynthConfig,
     gt_displacement,
     load_gt_edit,
     stretch_displacement,
-    synthesize,
 )
+from recon.synth_mesh import Normalisation
 from render.cameras import load_cameras
 from render.errors import SineError
 from render.io import read_depth, read_image, read_label_map
@@ -374,7 +373,8 @@ def _points_on_faces(mesh, n: int = 4000, seed: int = 0):
 
 def test_a_stretch_follows_the_smooth_field_inside_big_faces():
     from recon import procedural
-    from recon.synth import STRETCH_MAX_EDGE, geometric_edit, normalise, stretch_displacement
+    from recon.synth_edits import STRETCH_MAX_EDGE, geometric_edit, stretch_displacement
+    from recon.synth_mesh import normalise
 
     mesh, _ = normalise(procedural.build("toycar").mesh, "z")
     plane = np.array([0.0, 0.0, 1.0, 0.1])
