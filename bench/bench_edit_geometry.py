@@ -73,9 +73,11 @@ VARIANTS = {
 
 
 def prepare_object(name: str, work: Path, size: int, views: int, fit_iterations: int | None):
-    from recon.fit import FitConfig, fit_template
+    from recon.fit import fit_template
+    from recon.fit_config import FitConfig
     from recon.ingest import IngestConfig
-    from recon.pipeline import ReconConfig, run_recon
+    from recon.pipeline import run_recon
+    from recon.recon_config import ReconConfig
     from recon.rundir import RunDir
     from recon.synth import SynthConfig, synthesize
 

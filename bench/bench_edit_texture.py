@@ -147,9 +147,11 @@ def prepare_object(
     name, work: Path, size, views, fit_iterations, features: bool, fit_options: dict | None = None
 ):
     from edit.feature_field_fit import FeaturesConfig, distill_features
-    from recon.fit import FitConfig, fit_template
+    from recon.fit import fit_template
+    from recon.fit_config import FitConfig
     from recon.ingest import IngestConfig
-    from recon.pipeline import ReconConfig, run_recon
+    from recon.pipeline import run_recon
+    from recon.recon_config import ReconConfig
     from recon.rundir import RunDir
     from recon.synth import SynthConfig, synthesize
 
@@ -305,11 +307,12 @@ def memory_child(run_dir: str, size: int, mode: str) -> dict:
     from edit.compositor import Compositor
     from edit.deferred import deferred_backward, direct_backward
     from edit.dino import load_dino
-    from edit.texture_edit import edited_image
     from edit.texture_field import TextureField
     from edit.texture_loss import TextureLoss
+    from edit.texture_training import edited_image
     from edit.texture_views import sample_view, scaled_camera
-    from recon.fit import load_fitted, make_sampler
+    from recon.fit import load_fitted
+    from recon.fit_proxy import make_sampler
     from recon.rundir import RunDir
     from render.template_field import freeze
 
@@ -443,8 +446,8 @@ def reference_color_distances(syn: Path, previews: list[Path], photo: Path) -> d
     photo's opaque pixels."""
     import torch
 
-    from edit.texture_edit import read_reference
     from edit.texture_loss import sliced_wasserstein
+    from edit.texture_setup import read_reference
     from render.io import read_image
 
     reference = torch.from_numpy(read_reference(photo, (1.0, 1.0, 1.0)).colors)
@@ -467,7 +470,8 @@ def reference_color_distances(syn: Path, previews: list[Path], photo: Path) -> d
 def unaligned(args, source: str, reference: str) -> dict:
     """Ours with --reference: the object's part (its GT label in the editing view) takes the
     look of the reference photo; CLS distances to the photo before / after on 4 views."""
-    from edit.texture_edit import TextureEditConfig, run_texture_edit
+    from edit.texture_config import TextureEditConfig
+    from edit.texture_edit import run_texture_edit
     from render.io import read_image, write_image
 
     obj = case_name(source)
@@ -648,7 +652,8 @@ def edit_case(args, obj: str, kind: str, syn: Path, work: Path, run, template, o
     import dataclasses
 
     from edit.scene import load_scene
-    from edit.texture_edit import TextureEditConfig, run_texture_edit
+    from edit.texture_config import TextureEditConfig
+    from edit.texture_edit import run_texture_edit
     from render.io import read_mask, write_image
 
     frames = run.load_cameras().frames

@@ -98,7 +98,8 @@ def worker(run: Path, opts: dict[str, str], preview: Path) -> None:
 
     import numpy as np
 
-    from recon.fit import FitConfig, fit_template
+    from recon.fit import fit_template
+    from recon.fit_config import FitConfig
 
     types = {f.name: f.type for f in fields(FitConfig)}
     kwargs = {}

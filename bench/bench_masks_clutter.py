@@ -107,7 +107,8 @@ def case(obj: str, background: str, args) -> dict:
     run = root / "run"
     if args.masks_only:
         from recon.ingest import IngestConfig, ingest_capture
-        from recon.pipeline import Pipeline, ReconConfig
+        from recon.pipeline import Pipeline
+        from recon.recon_config import ReconConfig
         from recon.rundir import RunDir
 
         rd = RunDir(run)

@@ -21,7 +21,9 @@ import time
 import numpy as np
 import torch
 
-from recon.fit import build_ray_pool, load_fitted, load_views, make_sampler, template_proxy
+from recon.fit import load_fitted
+from recon.fit_data import build_ray_pool, load_views
+from recon.fit_proxy import make_sampler, template_proxy
 from recon.rundir import RunDir
 from render.raycast import MeshRaycaster
 from render.renderer import render_image

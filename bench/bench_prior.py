@@ -42,7 +42,7 @@ def prior_rows(work: Path, kind: str) -> list[tuple[str, float, float, float]]:
     from bench_edit_geometry import gt_move
 
     from edit.shape_prior import build_prior_mesh, object_axes
-    from recon.fit import template_proxy
+    from recon.fit_proxy import template_proxy
     from recon.rundir import RunDir
     from render.io import read_image, read_json, read_mask
     from render.raycast import MeshRaycaster

@@ -23,9 +23,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from recon.pipeline import Pipeline, ReconConfig, proxy_params  # noqa: E402
+from recon.pipeline import Pipeline  # noqa: E402
 from recon.proxy_mesh import build_proxy, closing_depths, depth_disagreement  # noqa: E402
 from recon.proxy_refine import silhouette_ious  # noqa: E402
+from recon.recon_config import ReconConfig, proxy_params  # noqa: E402
 from recon.rundir import RunDir  # noqa: E402
 from render.io import read_depth  # noqa: E402
 

@@ -131,7 +131,8 @@ def refine_case(case: str, run: Path, capture: Path | None, variants, out: Path)
     import open3d as o3d
     import torch
 
-    from recon.fit import load_fitted, make_sampler
+    from recon.fit import load_fitted
+    from recon.fit_proxy import make_sampler
     from recon.proxy_mesh import write_mesh
     from recon.proxy_refine import RefineConfig, refine_run
     from recon.rundir import RunDir

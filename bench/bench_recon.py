@@ -194,7 +194,8 @@ def score_run(run: Path, gt_by_name: dict | None, gt_mesh: Path | None) -> dict:
 
 def run_variants(out: Path, names: list[str], variants: list[str]) -> int:
     from recon.ingest import IngestConfig
-    from recon.pipeline import ReconConfig, run_recon
+    from recon.pipeline import run_recon
+    from recon.recon_config import ReconConfig
     from recon.rundir import RunDir
 
     out.mkdir(parents=True, exist_ok=True)

@@ -38,7 +38,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from recon.fit import load_fitted, load_views, make_sampler  # noqa: E402
+from recon.fit import load_fitted  # noqa: E402
+from recon.fit_data import load_views  # noqa: E402
+from recon.fit_proxy import make_sampler  # noqa: E402
 from recon.rundir import RunDir  # noqa: E402
 from render.io import write_image  # noqa: E402
 from render.metrics import masked_psnr, psnr  # noqa: E402

@@ -46,7 +46,8 @@ def make_run(work: Path, size: int, views: int) -> Path:
 
 def worker(args) -> None:
     """One fit in this process; prints a JSON line."""
-    from recon.fit import FitConfig, fit_template
+    from recon.fit import fit_template
+    from recon.fit_config import FitConfig
 
     run = Path(args.work) / f"run_{args.worker}"
     if run.exists():

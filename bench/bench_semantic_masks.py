@@ -77,9 +77,11 @@ def main() -> None:
     from edit.feature_maps import FeatureMapRenderer
     from edit.part_masks import view_image
     from edit.semantic_masks import SemanticMaskConfig, SemanticMasks
-    from recon.fit import FitConfig, fit_template
+    from recon.fit import fit_template
+    from recon.fit_config import FitConfig
     from recon.ingest import IngestConfig
-    from recon.pipeline import ReconConfig, run_recon
+    from recon.pipeline import run_recon
+    from recon.recon_config import ReconConfig
     from recon.rundir import RunDir
     from recon.synth import SynthConfig, synthesize
     from render.io import read_json, read_label_map

@@ -6,7 +6,7 @@ both neighbours see (the template's depth decides what they see).
 If the warped neighbours score far above the template, the capture's views agree with each other
 and the template is what loses the detail (underfit); if they score like the template, the views
 themselves disagree (lighting that turns with the camera, pose error) and no field does much
-better. bench/RESULTS.md "The colour-detail phase" has the oxford-dinosaur's table.
+better. bench/HISTORY.md "The colour-detail phase" has the oxford-dinosaur's table.
 
     .venv/bin/python bench/bench_view_consistency.py RUN [RUN ...] [--threads 2]
 """

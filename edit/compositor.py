@@ -42,7 +42,7 @@ of the pixel's template colour that comes from the edited part's samples, and th
 A pixel on the part's rim mixes the part with what lies next to it (the background, another
 part); only the part's share is transformed, so where g = 1/2 and P = p/2 the pixel changes by
 (A p + b) / 2: half of a part pixel's change, the rest left alone (`--part-colour`; toycar
-rims' squared error -12 % and -7 % on two seeds, bench/RESULTS.md). Inside the part (g = 1,
+rims' squared error -12 % and -7 % on two seeds, bench/HISTORY.md). Inside the part (g = 1,
 P = I_o) both forms agree.
 The UNet says which colour transform applies where; the transform acts on each pixel's colour
 linearly. A surface's pixel is its albedo times its shading, so a linear change of the albedo

@@ -32,7 +32,7 @@ DEFAULT_PART = {"toycar": "cabin", "figurine": "head"}
 # The figurine is not one: a body of revolution whose stripes are rings around its axis, so its
 # silhouettes and three in four of its SIFT matches are the same after any turn (SfM's models
 # are degenerate, the turntable model cannot fix the angles, the camera's elevation nor the
-# focal length: bench/RESULTS.md "Self-checks and the turntable pose model"); its demo keeps
+# focal length: bench/HISTORY.md "Self-checks and the turntable pose model"); its demo keeps
 # the capture's poses and intrinsics.
 POSED_FROM_IMAGES = ("toycar",)
 EDIT_NAME = "geometric"  # RUN/edits/geometric, learnt from the synth's edits/geometric view K
@@ -46,7 +46,7 @@ RECON = {"exhaustive_below": 0, "sfm_affine_shape": True, "sfm_domain_size_pooli
 # Defaults of the full run and of --fast: views, working width, orbit frames, summary rows, and
 # the stage options that differ from each command's defaults. The geometric edit mirrors its
 # handles across the car's mirror plane (`sine edit --symmetric`): the taller cabin is a
-# symmetric edit seen from one side (held-out PSNR +1.0 dB, bench/RESULTS.md "Demo").
+# symmetric edit seen from one side (held-out PSNR +1.0 dB, bench/HISTORY.md "Demo").
 FULL = {
     "views": 36,
     "run_width": 256,
@@ -166,10 +166,10 @@ def stage_configs(cfg: DemoConfig) -> dict:
     from edit.feature_field_fit import FeaturesConfig
     from edit.geometry_edit import GeometryEditConfig
     from edit.part_masks import MasksConfig
-    from edit.texture_edit import TextureEditConfig
-    from recon.fit import FitConfig
+    from edit.texture_config import TextureEditConfig
+    from recon.fit_config import FitConfig
     from recon.ingest import IngestConfig
-    from recon.pipeline import ReconConfig
+    from recon.recon_config import ReconConfig
     from recon.synth import SynthConfig
 
     base = FAST if cfg.fast else FULL

@@ -35,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     import dataclasses
 
     from edit.geometry_edit import GeometryEditConfig
-    from edit.texture_edit import TextureEditConfig
+    from edit.texture_config import TextureEditConfig
 
     parser.add_argument("run", type=Path, help="run directory with a fitted template")
     parser.add_argument(
@@ -118,7 +118,8 @@ def _geometry_summary(args: argparse.Namespace, metrics: dict, where: Path) -> s
 
 
 def _learn_texture(args: argparse.Namespace, **common) -> dict:
-    from edit.texture_edit import TextureEditConfig, run_texture_edit
+    from edit.texture_config import TextureEditConfig
+    from edit.texture_edit import run_texture_edit
 
     if args.mask is not None:
         raise SineError("--mask is for --mode geometry (a texture edit keeps the silhouette)")
@@ -153,7 +154,7 @@ def _texture_summary(args: argparse.Namespace, metrics: dict, where: Path) -> st
 def _learn_hybrid(args: argparse.Namespace, **common) -> dict:
     from edit.geometry_edit import GeometryEditConfig
     from edit.hybrid_edit import run_hybrid_edit
-    from edit.texture_edit import TextureEditConfig
+    from edit.texture_config import TextureEditConfig
 
     return run_hybrid_edit(
         args.run,

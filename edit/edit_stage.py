@@ -23,7 +23,7 @@ from recon.formats import FORMAT_VERSIONS
 from recon.rundir import RunDir
 from recon.training import Trainer, discard_unstarted
 from render.errors import SineError
-from render.io import file_sha256, save_torch, write_json
+from render.io import file_sha256, save_torch
 from render.locks import lock_entry
 
 # what an edit is made from besides the user's files: an edit of a template fitted again since
@@ -116,9 +116,8 @@ def loop_metrics(trainer: Trainer, device) -> dict:
 
 
 def publish_edit(trainer: Trainer, metrics: dict, t_start: float, settings: Any) -> dict:
-    """Writes metrics.json (with the total time since `t_start`) and publishes the edit with
-    its `settings` (the config in effect, saved as config.toml); returns the metrics."""
+    """Publishes the edit with its metrics (and the total time since `t_start`) and its
+    `settings` (the config in effect, saved as config.toml); returns the metrics."""
     metrics["total_seconds"] = time.perf_counter() - t_start
-    write_json(trainer.work_dir / "metrics.json", metrics)
-    trainer.publish(settings=settings)
+    trainer.publish(metrics, settings=settings)
     return metrics

@@ -231,7 +231,7 @@ class TextureEditScene(EditScene):
         # the compositor was trained on images of one ray per pixel: it composites each of the
         # s x s sub-pixel images, and the pixel's box filter averages the composites (not the
         # composite of the averaged images; toycar +0.13 dB, spot / figurine -0.03 / -0.07,
-        # bench/RESULTS.md)
+        # bench/HISTORY.md)
         sub = {k: torch.from_numpy(out[f"{k}_subpixels"]).to(self.device) for k in channels}
         with torch.no_grad():
             composites = [

@@ -28,7 +28,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from recon.fit import load_fitted, load_views, make_sampler
+from recon.fit import load_fitted
+from recon.fit_data import load_views
+from recon.fit_proxy import make_sampler
 from recon.formats import FORMAT_VERSIONS, check_format
 from recon.rundir import RunDir
 from recon.training import (
@@ -52,7 +54,7 @@ from render.feature_field import (
     top_k_samples,
 )
 from render.hashgrid import HashGridConfig
-from render.io import load_torch, save_torch, write_image, write_json
+from render.io import load_torch, save_torch, write_image
 from render.locks import lock_folder
 
 
@@ -457,8 +459,7 @@ def _distill(run: RunDir, cfg: FeaturesConfig, force: bool, progress: bool, stop
             "device": str(device),
         }
     )
-    write_json(trainer.work_dir / "metrics.json", metrics)
-    trainer.publish(settings=cfg)
+    trainer.publish(metrics, settings=cfg)
     run.append_config("features", cfg)
     return metrics
 

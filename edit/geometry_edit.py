@@ -64,7 +64,8 @@ from edit.editing_field import EditingField, combine, edited_query, warp_vertice
 from edit.editing_scene import edited_sampler, scene_from_folder
 from edit.shape_prior import PriorMesh, build_prior_mesh, object_axes
 from edit.template_scene import load_template_scene
-from recon.fit import load_fitted, make_sampler
+from recon.fit import load_fitted
+from recon.fit_proxy import make_sampler
 from recon.rundir import RunDir
 from recon.training import RUNTIME_KEYS as LOOP_RUNTIME_KEYS
 from recon.training import (

@@ -16,7 +16,7 @@ then `texture.iterations` texture steps:
    silhouette and the shape prior drive the deformation inside the editable region: L_gt's
    photometric term is left out there (L_reg still keeps the rest of view K) and this F_dT stays
    zero, so the target's new colours are left to the texture steps;
-2. texture steps (`edit.texture_edit.texture_steps`): the geometric edit is frozen and becomes
+2. texture steps (`edit.texture_training.texture_steps`): the geometric edit is frozen and becomes
    the texture edit's template (`edit.editing_scene.deformed_template`: the template behind
    F_dG, sampled around F'_dG(proxy)); a second editing field's F_dT and the compositor learn
    the colours from the texture target (or reference) with the texture edit's losses and
@@ -52,7 +52,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from edit import geometry_edit, texture_edit
+from edit import geometry_edit, texture_config, texture_setup
 from edit.edit_stage import (
     PATH_KEYS,
     edit_trainer,
@@ -66,13 +66,9 @@ from edit.edit_stage import (
 from edit.editing_scene import deformed_template, scene_from_folder
 from edit.geometry_edit import GeometryEditConfig, geometry_training, with_fit_band
 from edit.template_scene import load_template_scene
-from edit.texture_edit import (
-    TextureEditConfig,
-    texture_parts,
-    texture_steps,
-    uses_part_colour,
-    write_previews,
-)
+from edit.texture_config import TextureEditConfig, uses_part_colour
+from edit.texture_edit import write_previews
+from edit.texture_training import texture_parts, texture_steps
 from recon.training import exponential_decay, loop_options
 from render.configs import to_dict, validate
 from render.device import pick_device, torch_threads
@@ -123,7 +119,7 @@ def run_hybrid_edit(
     steps' region (default: `region`); `stop_at`: stop after that many steps of both phases
     together (as if interrupted)."""
     gcfg = geometry_cfg or GeometryEditConfig()
-    tcfg = texture_edit.options_in_effect(texture_cfg or TextureEditConfig(), reference)
+    tcfg = texture_config.options_in_effect(texture_cfg or TextureEditConfig(), reference)
     validate(gcfg)
     validate(tcfg)
     targets = hybrid_targets(target, target_geometry, target_texture, reference)
@@ -135,7 +131,7 @@ def run_hybrid_edit(
     if reference is not None and not Path(reference).is_file():
         raise SineError(f"reference image {reference} does not exist")
     run, out = open_edit(run_dir, view, name)
-    texture_edit.require_features(run, tcfg)  # before the geometric steps, not after
+    texture_setup.require_features(run, tcfg)  # before the geometric steps, not after
     device = pick_device(gcfg.device)
     regions = (region, region if region_texture is None else region_texture)
     with editing(out), torch_threads(gcfg.threads):
@@ -190,7 +186,7 @@ def _edit(
     geometry_target, texture_target, one = targets
     settings = _settings(view, targets, reference, mask, regions, gcfg, tcfg)
     runtime = tuple(f"geometry.{k}" for k in geometry_edit.RUNTIME_KEYS)
-    runtime += tuple(f"texture.{k}" for k in texture_edit.RUNTIME_KEYS) + PATH_KEYS
+    runtime += tuple(f"texture.{k}" for k in texture_config.RUNTIME_KEYS) + PATH_KEYS
     n_geometry, n_texture = gcfg.iterations, tcfg.iterations
     trainer = edit_trainer(
         out,
@@ -198,7 +194,7 @@ def _edit(
         runtime,
         {**loop_options(gcfg), "iterations": n_geometry + n_texture},
         _options(GeometryEditConfig(), TextureEditConfig()),
-        texture_edit.TEXTURE_INPUTS,
+        texture_config.TEXTURE_INPUTS,
         force=force,
         progress=progress,
         manual_backward=True,
@@ -255,7 +251,7 @@ def _edit(
         if not phase:
             edited = deformed_template(template, freeze(geo_editing), gcfg.band_width)
             try:
-                setup = texture_edit.prepare(
+                setup = texture_setup.prepare(
                     run,
                     work / "texture",
                     view,
@@ -289,7 +285,7 @@ def _edit(
                 device,
                 feature_geometry=edited,
                 slow_down=(
-                    lambda names, f: texture_edit.scale_learning_rates(
+                    lambda names, f: texture_setup.scale_learning_rates(
                         trainer, tuple(f"texture.{n}" for n in names), f
                     )
                 )

@@ -291,7 +291,7 @@ def proxy_mirror_plane(run) -> np.ndarray | None:
     """The mirror plane (n, D) of a run's proxy mesh (`mirror_plane`), or None."""
     import trimesh
 
-    from recon.fit import template_proxy
+    from recon.fit_proxy import template_proxy
 
     mesh = trimesh.load(template_proxy(run), force="mesh", process=False)
     return mirror_plane(np.asarray(mesh.vertices, np.float64))

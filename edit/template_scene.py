@@ -87,7 +87,7 @@ class TemplateScene(Scene):
 
     def mesh(self) -> tuple[np.ndarray, np.ndarray]:
         if self._mesh is None:
-            from recon.fit import template_proxy
+            from recon.fit_proxy import template_proxy
 
             self.run.require("proxy_mesh")
             # the proxy the template was fitted around
@@ -97,7 +97,8 @@ class TemplateScene(Scene):
 
 
 def load_template_scene(run: RunDir, device: torch.device) -> TemplateScene:
-    from recon.fit import load_fitted, make_sampler
+    from recon.fit import load_fitted
+    from recon.fit_proxy import make_sampler
 
     fitted_field, background, fit_cfg = load_fitted(run.root, device)
     sampler = make_sampler(fit_cfg, run)

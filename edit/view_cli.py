@@ -66,7 +66,7 @@ def viewer_scene(run_dir, edit=None, strength=1.0, colors=True, device="auto"):
         template = load_scene(run.root, None, device=device)
         template_mesh = template.colored_mesh() if colors else (*template.mesh(), None)
     else:
-        from recon.fit import template_proxy
+        from recon.fit_proxy import template_proxy
 
         run.require("proxy_mesh")
         m = run.read_proxy(template_proxy(run))

@@ -4,7 +4,7 @@ Why. The main fit trains density and colour together, 21 field samples per ray, 
 on 2 cores: in its 1500 steps each training pixel is drawn about four times. On a real capture
 the fine texture stays soft (the oxford-dinosaur's held-out views 24.7-25.1 dB where both ring
 neighbours' photos, warped into them through the template's own depth, score 29-30 dB:
-bench/RESULTS.md "The colour-detail phase", `bench/bench_view_consistency.py`).
+bench/HISTORY.md "The colour-detail phase", `bench/bench_view_consistency.py`).
 
 How. When the main fit has finished (its moving average in place) the density is frozen, so
 every training ray's sample weights are fixed. They are computed once (`build_detail_cache`):

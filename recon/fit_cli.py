@@ -21,7 +21,7 @@ HELP = "fit the template radiance field (RUN/template/)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from recon.fit import FitConfig
+    from recon.fit_config import FitConfig
 
     add_training_arguments(
         parser,
@@ -32,7 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from recon.fit import FitConfig, fit_template
+    from recon.fit import fit_template
+    from recon.fit_config import FitConfig
 
     cfg = from_args(FitConfig, args)
     metrics = fit_template(args.run, cfg, force=args.force, progress=not args.quiet)

@@ -1,6 +1,6 @@
 """Where the recon measured its proxy: for each proxy vertex, the share of the views that see
 it in which the recon's depth there was the visual hull's alone, not stereo's. The fit starts
-its band wide only there (`recon.fit.band_at_round`): the hull is an outer bound, the surface
+its band wide only there (`recon.fit_proxy.band_at_round`): the hull is an outer bound, the surface
 may lie well inside it, while stereo put a measured point where it is.
 
 Which pixels took stereo is read back from the run itself: the recon's depth map differs from

@@ -364,7 +364,7 @@ def refine_proxy(
 def run_proxy_params(run: RunDir) -> ProxyParams:
     """The proxy settings the run's proxy_mesh stage used (recon_state.json), else recon's
     defaults."""
-    from recon.pipeline import ReconConfig, proxy_params
+    from recon.recon_config import ReconConfig, proxy_params
     from render.io import read_json
 
     cfg = ReconConfig()

@@ -23,7 +23,7 @@ HELP = "reconstruct a capture: masks, poses, normalisation, depth, proxy mesh, r
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from recon.ingest import IngestConfig
-    from recon.pipeline import ReconConfig
+    from recon.recon_config import ReconConfig
 
     parser.add_argument(
         "capture",
@@ -40,7 +40,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from recon.ingest import IngestConfig
-    from recon.pipeline import ReconConfig, run_recon
+    from recon.pipeline import run_recon
+    from recon.recon_config import ReconConfig
 
     report = run_recon(
         args.capture, RunDir(args.out), from_args(ReconConfig, args), from_args(IngestConfig, args)

@@ -20,8 +20,7 @@ checkpoints (every `checkpoint_every` steps and every `checkpoint_seconds` of wa
 
     if not trainer.run(step, stop_at=stop_at):     # stopped early on purpose
         return {"step": trainer.step}
-    write_json(trainer.work_dir / "metrics.json", metrics)  # every output into work_dir
-    trainer.publish()
+    trainer.publish(metrics)  # every other output written into work_dir before
 
 Steps. Before each step the loop zeroes the gradients; it sums the returned terms into the loss
 (logged as "loss", each term under its own name), stops with a SineError when the loss is not
@@ -541,16 +540,15 @@ class Trainer:
         self.checkpoint()
 
     # ---- after training ----------------------------------------------------------------------
-    def publish(self, settings: Any = None) -> None:
-        """Writes log.json, the format version into metrics.json, the stage's `settings` (its
-        config in effect) as config.toml (`--config` of it reproduces the run), and moves
-        work_dir to `directory`, replacing the old results."""
+    def publish(self, metrics: dict, settings: Any = None) -> None:
+        """Writes metrics.json (`metrics`, given the format version), log.json, the stage's
+        `settings` (its config in effect) as config.toml (`--config` of it reproduces the run),
+        and moves work_dir to `directory`, replacing the old results."""
+        metrics["format_version"] = self.format_version
+        write_json(self.work_dir / "metrics.json", metrics)
         write_json(self.work_dir / "log.json", self.log)
         if settings is not None:
             write_settings(self.work_dir / "config.toml", settings)
-        metrics = self.work_dir / "metrics.json"
-        if metrics.is_file():
-            write_json(metrics, {**read_json(metrics), "format_version": self.format_version})
         remove_partial_writes(self.work_dir)
         old = self.directory.with_name(self.directory.name + ".old")
         shutil.rmtree(old, ignore_errors=True)

@@ -72,7 +72,8 @@ def tiny_feature_run(tmp_path_factory, features: bool = True) -> Path:
     """Path of the shared tiny run (synth -> fit [-> features]); built on first use."""
     from edit.feature_field_fit import FeaturesConfig, distill_features
     from recon import synth
-    from recon.fit import FitConfig, fit_template
+    from recon.fit import fit_template
+    from recon.fit_config import FitConfig
 
     root = tmp_path_factory.getbasetemp() / "tiny_feature_run"
     if not (root / "template" / "field.pt").is_file():

@@ -13,7 +13,7 @@ import pytest
 import sine_cli
 from edit import commands as edit_commands
 from recon import commands as recon_commands
-from recon.fit import FitConfig
+from recon.fit_config import FitConfig
 from render.configs import from_args, resolve_settings, write_settings
 from render.errors import SineError
 

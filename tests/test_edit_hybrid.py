@@ -26,7 +26,7 @@ from edit.hybrid_edit import run_hybrid_edit
 from edit.scene import load_scene
 from edit.targets import recolor_region, stretch_axis, write_rgba
 from edit.template_scene import load_template_scene
-from edit.texture_edit import TextureEditConfig
+from edit.texture_config import TextureEditConfig
 from recon.rundir import RunDir
 from render.io import load_torch, read_image, read_label_map, read_mask, write_mask
 from render.template_field import freeze

@@ -22,8 +22,10 @@ from edit.editing_field import EditingField, edited_query
 from edit.geometry_edit import GeometryEditConfig
 from edit.scene import load_scene
 from edit.targets import recolor_region, write_rgba
-from edit.texture_edit import TextureEditConfig, edited_image, run_texture_edit
+from edit.texture_config import TextureEditConfig
+from edit.texture_edit import run_texture_edit
 from edit.texture_field import TextureField, cosine_window
+from edit.texture_training import edited_image
 from edit.texture_views import (
     LiftedRegion,
     ViewSamples,
@@ -31,7 +33,8 @@ from edit.texture_views import (
     render_modification,
     sample_view,
 )
-from recon.fit import load_fitted, make_sampler
+from recon.fit import load_fitted
+from recon.fit_proxy import make_sampler
 from recon.rundir import RunDir
 from render.cameras import Camera, look_at
 from render.hashgrid import HashGridConfig
@@ -263,7 +266,7 @@ def test_the_quadratic_term_is_fitted_and_rendered_with_the_parts_share():
 
 
 def test_the_parts_share_is_used_by_the_affine_head_with_the_gate_only():
-    from edit.texture_edit import uses_part_colour
+    from edit.texture_config import uses_part_colour
 
     assert uses_part_colour(TextureEditConfig())  # the defaults: affine head, gate
     for change in ({"compositor_head": "residual"}, {"gate": False}, {"compositor": False}):
@@ -275,7 +278,7 @@ def test_the_gate_has_one_voxel_per_pixel_footprint_by_default():
     """Cameras 4 units from the centre with a focal length of 400 px see 0.01 units per pixel:
     over the gate's [-1, 1]^3 that is 200 voxels a side; coarser cameras get the floor of 128,
     finer ones the ceiling of 384; an explicit resolution wins."""
-    from edit.texture_edit import GATE_RESOLUTION_AUTO, gate_resolution
+    from edit.texture_config import GATE_RESOLUTION_AUTO, gate_resolution
 
     def cameras(focal):
         return [Camera(64, 64, focal, focal, 32, 32, look_at([4.0, 0.0, 0.0], [0.0] * 3))]
@@ -289,7 +292,7 @@ def test_the_gate_has_one_voxel_per_pixel_footprint_by_default():
 
 
 def test_affine_head_shared_transform_has_its_own_learning_rate():
-    from edit.texture_edit import texture_parts
+    from edit.texture_training import texture_parts
 
     template = TemplateField(TemplateFieldConfig(grid=SMALL_GRID))
     cfg = TextureEditConfig(compositor_head="affine", lr_compositor=1e-3, lr_transform=0.05)
@@ -314,7 +317,7 @@ def test_affine_head_shared_transform_has_its_own_learning_rate():
 
 
 def test_no_transform_is_fitted_without_an_aligned_target_or_the_affine_head():
-    from edit.texture_edit import fits_transform, options_in_effect
+    from edit.texture_config import fits_transform, options_in_effect
 
     cfg = TextureEditConfig(fit_transform=True)
     assert fits_transform(cfg) and fits_transform(options_in_effect(cfg, None))
@@ -649,7 +652,7 @@ def test_symmetric_auto_mirrors_a_painting_the_far_side_masks_follow(features_ru
     front fifth; at a threshold between the two (the tiny feature field's masks are coarse: the
     body's agreement is ~0.5 here), --symmetric-auto mirrors the body, whose mirror image may then
     change in the opposite view, and not the stroke; --no-symmetric-auto never mirrors."""
-    from edit.texture_edit import TextureSetup, editable_masker
+    from edit.texture_setup import TextureSetup, editable_masker
 
     run, sample, camera, body = view_k_of(features_run)
     front = np.arange(camera.width) < np.percentile(np.nonzero(body)[1], 20)
@@ -685,7 +688,7 @@ def test_semantic_masks_keep_what_view_k_saw_unpainted(features_run):
     """The front half of the body painted in view K: the body's semantic mask reaches its
     unpainted half too; with keep_seen that half keeps the template in view K and wherever
     another view sees it, while the far side (never seen by view K) is as without it."""
-    from edit.texture_edit import TextureSetup, editable_masker
+    from edit.texture_setup import TextureSetup, editable_masker
 
     run, sample, camera, body = view_k_of(features_run)
     frames = run.load_cameras().frames
@@ -998,7 +1001,7 @@ def test_reference_without_alpha_is_keyed_from_its_backdrop(tmp_path):
     """A photo without alpha on a plain backdrop: its object's colours only, the backdrop
     replaced by the run's background (keyed, or by saliency when asked); `none` keeps every
     pixel; a close-up of a texture (no backdrop to key) keeps every pixel under `auto` too."""
-    from edit.texture_edit import read_reference
+    from edit.texture_setup import read_reference
 
     photo, disc = _disc_photo([0.55, 0.55, 0.6])
     photo_path = tmp_path / "photo.png"

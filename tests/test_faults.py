@@ -320,7 +320,7 @@ def check_kills(reference: Reference, base, kinds: tuple[str, ...]) -> list[Kill
 # it recorded itself as done); the geometric edit also while its second checkpoint is written
 # (the temporary file complete, not yet renamed onto checkpoint.pt)
 KILL_POINTS = {
-    "recon": ("start", "at recon.pipeline:write_depth 4"),
+    "recon": ("start", "at recon.recon_stages:write_depth 4"),
     "fit": ("start", "checkpoint"),
     "features": ("start", "checkpoint"),
     "geometry": ("start", "checkpoint", "at torch:save 2"),

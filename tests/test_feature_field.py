@@ -147,7 +147,7 @@ def test_rendered_features_beat_the_mean_and_an_untrained_field(run_root):
     """On the training views the rendered features follow DINO's: centred cosine (the mean
     feature removed) well above a field predicting the mean feature (0) or an untrained one."""
     from edit.feature_field_fit import evaluate
-    from recon.fit import load_views
+    from recon.fit_data import load_views
 
     run = RunDir(run_root)
     template, field, sampler = load_features(run_root)
@@ -225,7 +225,7 @@ def test_missing_feature_field_is_a_clear_error(tmp_path):
 
 def test_dino_features_crop_the_object_and_fall_back_to_the_image(run_root, tmp_path):
     from edit.feature_field_fit import dino_features
-    from recon.fit import load_views
+    from recon.fit_data import load_views
 
     run = RunDir(run_root)
     views = load_views(run, "train")[:2]

@@ -9,15 +9,10 @@ import open3d as o3d
 import pytest
 import torch
 
-from recon.fit import (
-    FitConfig,
-    fit_template,
-    load_template,
-    make_sampler,
-    pixel_axes,
-    resolve_preset,
-    subpixel_dirs,
-)
+from recon.fit import fit_template, load_template
+from recon.fit_config import FitConfig, resolve_preset
+from recon.fit_data import pixel_axes, subpixel_dirs
+from recon.fit_proxy import make_sampler
 from recon.rundir import RunDir
 from render.cameras import Camera, CameraSet, look_at
 from render.errors import SineError
@@ -231,7 +226,7 @@ def test_subpixel_rays_hit_the_sub_pixel_centres():
 
 
 def test_ray_selector_draws_in_proportion_to_the_last_errors():
-    from recon.fit import RayPool, RaySelector
+    from recon.fit_data import RayPool, RaySelector
 
     n = 1000
     pool = RayPool(
@@ -250,7 +245,7 @@ def test_ray_selector_draws_in_proportion_to_the_last_errors():
 
 
 def test_presets_fill_only_the_options_not_given():
-    from recon.fit import PRESETS, resolve_preset
+    from recon.fit_config import PRESETS, resolve_preset
 
     assert PRESETS["fast"]["iterations"] < PRESETS["default"]["iterations"]
     assert PRESETS["default"]["iterations"] < PRESETS["quality"]["iterations"]
@@ -275,7 +270,7 @@ def test_max_resolution_matches_one_cell_to_a_pixel_at_the_object(tmp_path):
     """A camera 4 units from the object's centre with a focal length of 400 px sees 0.01 units
     per pixel there: over [-1, 1] that is 200 cells. The median over the training views counts
     (a held-out view closer in does not), an explicit value wins, no cameras -> 512."""
-    from recon.fit import FALLBACK_MAX_RESOLUTION, pixel_resolution, resolve_preset
+    from recon.fit_config import FALLBACK_MAX_RESOLUTION, pixel_resolution, resolve_preset
 
     def cam(distance, focal, split="train"):
         pose = look_at([distance, 0.0, 0.0], [0.0, 0.0, 0.0])
@@ -301,7 +296,7 @@ def test_refine_proxy_mid_fit_replaces_the_band_and_resumes_exactly(tmp_path):
     width by proxy vertex too: the recon's visual hull meets the proxy at the equator)."""
     import open3d as o3d
 
-    from recon.fit import template_proxy
+    from recon.fit_proxy import template_proxy
 
     base = _make_run(tmp_path / "base")
     big = o3d.geometry.TriangleMesh.create_sphere(0.6, 40)
@@ -334,7 +329,7 @@ def test_refine_proxy_mid_fit_replaces_the_band_and_resumes_exactly(tmp_path):
 
 def test_refinement_steps_every_fraction_of_the_fit_and_the_rounds_done():
     """Refinements every --refine-proxy of the steps, --refine-rounds times, inside the fit."""
-    from recon.fit import refinement_steps, refinements_done
+    from recon.fit_proxy import refinement_steps, refinements_done
 
     assert refinement_steps(FitConfig(iterations=1500, refine_proxy=0.3, refine_rounds=1)) == [450]
     two = FitConfig(iterations=1500, refine_proxy=0.3, refine_rounds=2)
@@ -351,7 +346,8 @@ def test_the_band_narrows_by_one_factor_per_refinement_round(tmp_path):
     """Before the first refinement the band is --band-width-start wide, after the last
     --band-width, a constant factor between rounds; without refinement it is --band-width.
     By default it starts 3 x wider when the proxy is refined, 1 x on dataset depth."""
-    from recon.fit import START_BAND, band_widths, resolve_preset
+    from recon.fit_config import START_BAND, resolve_preset
+    from recon.fit_proxy import band_widths
     from render.io import write_json
 
     four = FitConfig(iterations=1500, refine_proxy=0.2, refine_rounds=4, band_width_start=0.12)
@@ -377,7 +373,7 @@ def test_the_start_band_is_wide_only_where_the_recon_had_the_visual_hull_alone(t
     0, linear between; each vertex narrows geometrically round by round; one width without
     the hull."""
     from recon.depth import HullMesh, bounded_depths
-    from recon.fit import band_at_round
+    from recon.fit_proxy import band_at_round
     from recon.proxy_band import stereo_pixels, unmeasured_share
     from render.io import write_depth
 
@@ -461,12 +457,8 @@ def test_capture_background_without_masks_is_a_clear_error(tmp_path):
 def test_the_proxy_is_refined_by_default_only_when_it_was_estimated(tmp_path):
     """Hull + stereo proxies are refined every 20 % of the steps, four times; proxies from
     the dataset's depth or an unknown source are not; an explicit fraction refines once."""
-    from recon.fit import (
-        DEFAULT_REFINE_AT,
-        DEFAULT_REFINE_ROUNDS,
-        refinement_steps,
-        resolve_preset,
-    )
+    from recon.fit_config import DEFAULT_REFINE_AT, DEFAULT_REFINE_ROUNDS, resolve_preset
+    from recon.fit_proxy import refinement_steps
     from render.io import write_json
 
     def refine(cfg: FitConfig) -> tuple[float, int]:
@@ -489,7 +481,7 @@ def test_the_proxy_is_refined_by_default_only_when_it_was_estimated(tmp_path):
 def test_the_masks_edge_is_box_filtered_by_default_only_when_the_capture_brought_its_masks(
     tmp_path,
 ):
-    from recon.fit import resolve_preset
+    from recon.fit_config import resolve_preset
     from render.io import write_json
 
     run = RunDir(tmp_path / "run")
@@ -508,7 +500,7 @@ def test_the_masks_edge_is_box_filtered_by_default_only_when_the_capture_brought
 
 
 def test_silhouette_edge_marks_the_rings_on_both_sides_of_the_boundary():
-    from recon.fit import silhouette_edge
+    from recon.fit_data import silhouette_edge
 
     mask = np.zeros((7, 8), bool)
     mask[2:5, 3:6] = True  # a 3 x 3 square
@@ -586,7 +578,7 @@ def test_the_saved_field_is_the_moving_average_of_the_last_steps(tiny_run, tmp_p
 
 # ---- the colour-detail phase (recon/colour_detail.py) -------------------------------------------
 def _detail_field(max_resolution=64):
-    from recon.fit import field_config
+    from recon.fit_config import field_config
 
     cfg = FitConfig(iterations=10, **{**TINY, "max_resolution": max_resolution, "detail_steps": 5})
     return TemplateField(field_config(resolve_preset(cfg)))
@@ -621,7 +613,7 @@ def test_the_detail_cache_renders_the_training_rays_as_the_field_does(tiny_run, 
         reset_branch,
     )
     from recon.colour_detail import composite as detail_composite
-    from recon.fit import build_ray_pool, load_views
+    from recon.fit_data import build_ray_pool, load_views
     from render.renderer import render_rays
 
     run = _copy(tiny_run, tmp_path / "d")
@@ -719,7 +711,7 @@ def test_the_detail_check_keeps_or_drops_the_branch_and_resumes_exactly(
 def test_ray_pool_casts_only_the_proxy_window(tiny_run):
     """The pool cast through each view's pixel window of the inflated proxy is the pool of
     casting every pixel, tensor for tensor."""
-    from recon.fit import build_ray_pool, load_views
+    from recon.fit_data import build_ray_pool, load_views
 
     class EveryPixel:  # the same sampler without `pixel_window`
         def __init__(self, sampler):

@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from recon.ingest import IngestConfig, assign_splits, detect_format, ingest_capture
+from recon.capture_formats import detect_format
+from recon.ingest import IngestConfig, assign_splits, ingest_capture
 from recon.rundir import RunDir
 from render import cameras as C
 from render.errors import SineError

@@ -187,7 +187,8 @@ def test_forced_methods(clutter, tmp_path):
 
 
 def test_recon_option_added_later_counts_as_its_default(tmp_path):
-    from recon.pipeline import Pipeline, ReconConfig, stage_options
+    from recon.pipeline import Pipeline
+    from recon.recon_config import ReconConfig, stage_options
     from recon.rundir import RunDir
 
     run = RunDir(tmp_path / "run")

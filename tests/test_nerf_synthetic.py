@@ -12,7 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
-from recon.ingest import IngestConfig, detect_format, ingest_capture
+from recon.capture_formats import detect_format
+from recon.ingest import IngestConfig, ingest_capture
 from recon.rundir import RunDir
 from recon.synth import SynthConfig, synthesize
 from recon.synth_output import NERF_SYNTHETIC_DIR
@@ -121,7 +122,7 @@ def test_ingest_alpha_masks_white_background_and_held_out_test_split(synth, tmp_
 
 
 def test_fit_reads_the_held_out_views(synth, tmp_path):
-    from recon.fit import load_views
+    from recon.fit_data import load_views
 
     run, _ = _ingest(synth, tmp_path)
     test = load_views(run, "test")

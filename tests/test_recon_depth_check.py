@@ -175,7 +175,8 @@ def _copy_run(run, dest):
 
 
 def test_use_sfm_rescales_consistent_depth(small_run, tmp_path):
-    from recon.pipeline import Pipeline, ReconConfig
+    from recon.pipeline import Pipeline
+    from recon.recon_config import ReconConfig
 
     run = _copy_run(small_run, tmp_path / "run")
     pipe = Pipeline(run, ReconConfig())
@@ -193,7 +194,8 @@ def test_use_sfm_rescales_consistent_depth(small_run, tmp_path):
 def test_use_sfm_drops_inconsistent_depth_and_the_depth_stage_does_without(
     small_run, tmp_path, capsys
 ):
-    from recon.pipeline import Pipeline, ReconConfig
+    from recon.pipeline import Pipeline
+    from recon.recon_config import ReconConfig
 
     run = _copy_run(small_run, tmp_path / "run")
     cfg = ReconConfig(hull_resolution=32)

@@ -161,7 +161,8 @@ def reconstruct(root, kind: str, mesh) -> dict:
     import trimesh
 
     from recon.ingest import IngestConfig
-    from recon.pipeline import ReconConfig, run_recon
+    from recon.pipeline import run_recon
+    from recon.recon_config import ReconConfig
     from recon.rundir import RunDir
 
     radius = synth_render.fit_camera_distance(mesh.vertices, 12, 96, 72)
@@ -210,7 +211,8 @@ def test_partial_capture_message_when_too_little_gets_depth(figurine, tmp_path):
     its surface); the whole view looks at those open parts (measured: 7 % of the masked pixels
     get no depth, stereo fills none at 96x72). A run that needs more stops with one message."""
     from recon.ingest import IngestConfig
-    from recon.pipeline import ReconConfig, run_recon
+    from recon.pipeline import run_recon
+    from recon.recon_config import ReconConfig
     from recon.rundir import RunDir
 
     mesh = figurine[0]
@@ -293,7 +295,8 @@ def test_a_few_open_hull_pixels_do_not_cost_the_view_its_stereo(monkeypatch):
 
 def test_patchwork_capture_with_its_poses_stops_in_the_poses_stage(figurine, tmp_path):
     from recon.ingest import IngestConfig
-    from recon.pipeline import ReconConfig, run_recon
+    from recon.pipeline import run_recon
+    from recon.recon_config import ReconConfig
     from recon.rundir import RunDir
 
     mesh = figurine[0]

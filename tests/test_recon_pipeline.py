@@ -9,7 +9,8 @@ import pytest
 
 from recon import synth
 from recon.ingest import IngestConfig
-from recon.pipeline import STAGES, ReconConfig, run_recon, stage_options
+from recon.pipeline import run_recon
+from recon.recon_config import STAGES, ReconConfig, stage_options
 from recon.rundir import RunDir
 from render.errors import SineError
 from render.io import read_json

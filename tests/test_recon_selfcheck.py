@@ -11,7 +11,8 @@ from scene_helpers import ring, sphere_masks
 
 from recon import synth
 from recon.ingest import IngestConfig
-from recon.pipeline import ReconConfig, run_recon
+from recon.pipeline import run_recon
+from recon.recon_config import ReconConfig
 from recon.rundir import RunDir
 from recon.selfcheck import (
     CheckThresholds,

@@ -205,7 +205,8 @@ def test_sfm_recovers_the_turntable_of_a_synthetic_capture(tmp_path):
     the SfM frame). Measured: 0.62 deg, 0.6 %, silhouette IoU 0.975."""
     from recon import synth
     from recon.ingest import IngestConfig
-    from recon.pipeline import ReconConfig, run_recon
+    from recon.pipeline import run_recon
+    from recon.recon_config import ReconConfig
     from recon.rundir import RunDir
     from render.cameras import load_cameras
 

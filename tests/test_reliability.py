@@ -21,7 +21,8 @@ from feature_run_helpers import TINY_FIT, TINY_GEOMETRY_EDIT
 import sine_cli
 from edit.geometry_edit import GeometryEditConfig, run_geometry_edit
 from edit.targets import write_rgba
-from recon.fit import FitConfig, fit_template, load_fitted
+from recon.fit import fit_template, load_fitted
+from recon.fit_config import FitConfig
 from render import io
 from render.errors import SineError
 from render.io import read_image, write_json

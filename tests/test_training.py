@@ -9,7 +9,7 @@ import torch
 
 from recon.training import Trainer, changed_options, progress_bar
 from render.errors import SineError
-from render.io import read_json, write_json
+from render.io import read_json
 
 CONFIG = {"iterations": 12, "lr": 0.01, "seed": 5, "device": "cpu"}
 
@@ -119,8 +119,7 @@ def test_finished_run_is_skipped_and_changed_options_train_again(tmp_path, capsy
     t = Toy(tmp_path)
     t.start()
     t.trainer.run(t.step)
-    write_json(t.trainer.work_dir / "metrics.json", {"score": 1.0})
-    t.trainer.publish()
+    t.trainer.publish({"score": 1.0})
     assert not t.trainer.work_dir.exists()
     assert read_json(tmp_path / "toy" / "log.json")[-1]["step"] == 12
     done = {"score": 1.0, "format_version": 3, "skipped": True}
@@ -159,8 +158,7 @@ def test_a_run_whose_inputs_changed_is_trained_again(tmp_path, capsys):
     t = Toy(tmp_path, inputs=inputs)
     t.start()
     t.trainer.run(t.step)
-    write_json(t.trainer.work_dir / "metrics.json", {"score": 1.0})
-    t.trainer.publish()
+    t.trainer.publish({"score": 1.0})
     assert Toy(tmp_path, inputs=inputs).trainer.finished() is not None
     # the same content written again (a stage re-run that changed nothing) is the same input
     (tmp_path / "field.pt").write_bytes(b"weights")
@@ -180,8 +178,7 @@ def test_a_run_whose_inputs_changed_is_trained_again(tmp_path, capsys):
     plain = Toy(tmp_path, force=True)
     plain.start()
     plain.trainer.run(plain.step)
-    write_json(plain.trainer.work_dir / "metrics.json", {"score": 3.0})
-    plain.trainer.publish()
+    plain.trainer.publish({"score": 3.0})
     capsys.readouterr()
     # a run made without inputs, for a stage that now names some: trained again
     assert Toy(tmp_path, inputs=inputs).trainer.finished() is None
@@ -192,8 +189,7 @@ def test_a_run_of_another_format_version_is_trained_again_with_one_line(tmp_path
     t = Toy(tmp_path)
     t.start()
     t.trainer.run(t.step)
-    write_json(t.trainer.work_dir / "metrics.json", {"score": 1.0})
-    t.trainer.publish()
+    t.trainer.publish({"score": 1.0})
     assert read_json(tmp_path / "toy" / "metrics.json")["format_version"] == 3
     assert Toy(tmp_path).trainer.finished() is not None
     capsys.readouterr()

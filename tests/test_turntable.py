@@ -170,7 +170,8 @@ def test_recon_turntable_on_poses_every_view(toycar, tmp_path):
     """`sine recon --ignore-poses --turntable on` on the tiny toycar: every view posed, the
     self-check passes, the cameras match the truth up to a similarity."""
     from recon.ingest import IngestConfig
-    from recon.pipeline import ReconConfig, run_recon
+    from recon.pipeline import run_recon
+    from recon.recon_config import ReconConfig
     from recon.rundir import RunDir
 
     cap, cams, _ = toycar
@@ -202,7 +203,8 @@ def test_auto_replaces_a_wrong_but_confident_sfm_model(toycar, tmp_path, monkeyp
     from types import SimpleNamespace
 
     from recon.ingest import IngestConfig
-    from recon.pipeline import Pipeline, ReconConfig, run_recon
+    from recon.pipeline import Pipeline, run_recon
+    from recon.recon_config import ReconConfig
     from recon.rundir import RunDir
 
     cap, cams, _ = toycar
