@@ -48,7 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--mode",
         choices=["geometry", "texture", "hybrid"],
         default="geometry",
-        help="what the edit changes (hybrid: the shape, then the colours)",
+        help="what the edit changes (hybrid: shape, then colours)",
     )
     parser.add_argument("--target-geometry", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--target-texture", type=Path, help=argparse.SUPPRESS)
@@ -62,14 +62,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--name", default="edit", help="the edit's name: RUN/edits/NAME")
     parser.add_argument(
-        "--mask", type=Path, help="silhouette of the target (white = object) if it has no alpha"
+        "--mask", type=Path, help="the target's silhouette (white = object) without alpha"
     )
     parser.add_argument(
         "--region", type=Path, help="the editable part painted white on black in view K"
     )
     parser.add_argument("--force", action="store_true", help="start over, ignoring checkpoints")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_options(parser, GeometryEditConfig, shown=("device",))
+    add_options(parser, GeometryEditConfig, shown=("preset", "device"))
     # options of both modes have one default (tests/test_edit_texture.py checks): added once
     shared = tuple(f.name for f in dataclasses.fields(GeometryEditConfig))
     add_options(parser, TextureEditConfig, skip=shared, shown=())

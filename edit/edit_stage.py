@@ -15,6 +15,7 @@ user's files recorded by content, the trainer, the saved editing field and the p
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import time
 from pathlib import Path
 from typing import Any
@@ -34,6 +35,20 @@ EDIT_INPUTS = ("cameras.json", "proxy_mesh.ply", "template/field.pt")
 # under another spelling of its path is the same edit; an image edited in place is a new one)
 PATH_KEYS = ("target", "mask", "region", "reference", "texture_target", "texture_region")
 EDIT_OUTPUTS = ("edit_field.pt",)  # a finished edit whose field does not load is learnt again
+
+
+# the training steps of each edit phase by preset (`sine edit --preset`, unless iterations is set)
+EDIT_PRESETS = {"fast": 300, "default": 600, "quality": 1200}
+
+
+def with_preset(cfg):
+    """`cfg` (a geometry or texture edit config) with its iterations taken from its preset when
+    left at None."""
+    if cfg.preset not in EDIT_PRESETS:
+        raise SineError(f"--preset must be one of {', '.join(EDIT_PRESETS)} (got {cfg.preset!r})")
+    if cfg.iterations is not None:
+        return cfg
+    return dataclasses.replace(cfg, iterations=EDIT_PRESETS[cfg.preset])
 
 
 def pick_view(run: RunDir, view: int):

@@ -50,6 +50,7 @@ from edit import geometry_losses as losses
 from edit.edit_inputs import difference_region, read_region, read_target
 from edit.edit_stage import (
     EDIT_INPUTS,
+    EDIT_PRESETS,
     PATH_KEYS,
     edit_trainer,
     editing,
@@ -59,6 +60,7 @@ from edit.edit_stage import (
     pick_view,
     publish_edit,
     save_edit_field,
+    with_preset,
 )
 from edit.editing_field import EditingField, combine, edited_query, warp_vertices
 from edit.editing_scene import edited_sampler, scene_from_folder
@@ -96,7 +98,13 @@ class GeometryEditConfig(LoopOptions):
     method: str = option(
         "ours", "ours (editing field + priors) or naive (fine-tune)", choices=list(METHODS)
     )
-    iterations: int = option(600, "training steps", low=1)
+    preset: str = option(
+        "default",
+        "time/quality trade-off: the training steps of each phase, unless iterations is set "
+        "(fast 300, default 600, quality 1200)",
+        choices=list(EDIT_PRESETS),
+    )
+    iterations: int | None = option(None, "training steps (None: the preset's)", low=1)
     batch_rays: int = option(1024, "rays of the edited view per step", low=1)
     lr_deform: float = option(2e-3, "Adam learning rate of F_dG and F'_dG", low=1e-12)
     warmup_steps: int = option(50, "steps over which F_dG's learning rate ramps up linearly", low=0)
@@ -480,7 +488,7 @@ def run_geometry_edit(
     stop_at: int | None = None,
 ) -> dict:
     """Learns a geometric edit into RUN/edits/NAME; returns its metrics (resumes when re-run)."""
-    cfg = validate(cfg or GeometryEditConfig())
+    cfg = validate(with_preset(cfg or GeometryEditConfig()))
     run, out = open_edit(run_dir, view, name)
     device = pick_device(cfg.device)
     with editing(out), torch_threads(cfg.threads):

@@ -62,6 +62,7 @@ from edit.edit_stage import (
     open_edit,
     publish_edit,
     save_edit_field,
+    with_preset,
 )
 from edit.editing_scene import deformed_template, scene_from_folder
 from edit.geometry_edit import GeometryEditConfig, geometry_training, with_fit_band
@@ -118,8 +119,10 @@ def run_hybrid_edit(
     `mask`: the geometry target's silhouette when it has no alpha; `region_texture`: the texture
     steps' region (default: `region`); `stop_at`: stop after that many steps of both phases
     together (as if interrupted)."""
-    gcfg = geometry_cfg or GeometryEditConfig()
-    tcfg = texture_config.options_in_effect(texture_cfg or TextureEditConfig(), reference)
+    gcfg = with_preset(geometry_cfg or GeometryEditConfig())
+    tcfg = texture_config.options_in_effect(
+        with_preset(texture_cfg or TextureEditConfig()), reference
+    )
     validate(gcfg)
     validate(tcfg)
     targets = hybrid_targets(target, target_geometry, target_texture, reference)

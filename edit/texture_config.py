@@ -10,7 +10,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from edit.compositor import HEADS
-from edit.edit_stage import EDIT_INPUTS
+from edit.edit_stage import EDIT_INPUTS, EDIT_PRESETS
 from recon.training import RUNTIME_KEYS as LOOP_RUNTIME_KEYS
 from recon.training import LoopOptions
 from render.configs import option
@@ -47,7 +47,13 @@ class TextureEditConfig(LoopOptions):
         "of each pixel's colour (weighted by the gate), so a rim pixel keeps its neighbour's "
         "share (--no-part-colour: the whole pixel)",
     )
-    iterations: int = option(600, "training steps", low=1)
+    preset: str = option(
+        "default",
+        "time/quality trade-off: the training steps of each phase, unless iterations is set "
+        "(fast 300, default 600, quality 1200)",
+        choices=list(EDIT_PRESETS),
+    )
+    iterations: int | None = option(None, "training steps (None: the preset's)", low=1)
     template_feature: bool = option(
         True,
         "F_dT also reads the template's geometry feature at each point (as the template's own "

@@ -118,6 +118,7 @@ from edit.edit_stage import (
     open_edit,
     publish_edit,
     save_edit_field,
+    with_preset,
 )
 from edit.geometry_losses import photometric
 from edit.texture_config import (
@@ -156,7 +157,7 @@ def run_texture_edit(
     stop_at: int | None = None,
 ) -> dict:
     """Learns a texture edit into RUN/edits/NAME; returns its metrics (resumes when re-run)."""
-    cfg = options_in_effect(cfg or TextureEditConfig(), reference)
+    cfg = options_in_effect(with_preset(cfg or TextureEditConfig()), reference)
     validate(cfg)
     if target is None and reference is None:
         raise SineError("a texture edit needs --target (view K repainted) or --reference (a photo)")
