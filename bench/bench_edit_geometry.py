@@ -409,7 +409,7 @@ def main() -> int:
 
     import dataclasses
 
-    from edit.geometry_edit import GeometryEditConfig
+    from edit.geometry_config import GeometryEditConfig
     from edit.scene import load_scene
     from render.errors import SineError
     from render.io import write_image, write_json

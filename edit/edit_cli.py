@@ -34,7 +34,7 @@ examples:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     import dataclasses
 
-    from edit.geometry_edit import GeometryEditConfig
+    from edit.geometry_config import GeometryEditConfig
     from edit.texture_config import TextureEditConfig
 
     parser.add_argument("run", type=Path, help="run directory with a fitted template")
@@ -95,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _learn_geometry(args: argparse.Namespace, **common) -> dict:
-    from edit.geometry_edit import GeometryEditConfig, run_geometry_edit
+    from edit.geometry_config import GeometryEditConfig
+    from edit.geometry_edit import run_geometry_edit
 
     if args.reference is not None:
         raise SineError("--reference is for --mode texture or hybrid")
@@ -152,7 +153,7 @@ def _texture_summary(args: argparse.Namespace, metrics: dict, where: Path) -> st
 
 
 def _learn_hybrid(args: argparse.Namespace, **common) -> dict:
-    from edit.geometry_edit import GeometryEditConfig
+    from edit.geometry_config import GeometryEditConfig
     from edit.hybrid_edit import run_hybrid_edit
     from edit.texture_config import TextureEditConfig
 

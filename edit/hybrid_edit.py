@@ -52,7 +52,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from edit import geometry_edit, texture_config, texture_setup
+from edit import geometry_config, geometry_edit, texture_config, texture_setup
 from edit.edit_stage import (
     PATH_KEYS,
     edit_trainer,
@@ -65,7 +65,8 @@ from edit.edit_stage import (
     with_preset,
 )
 from edit.editing_scene import deformed_template, scene_from_folder
-from edit.geometry_edit import GeometryEditConfig, geometry_training, with_fit_band
+from edit.geometry_config import GeometryEditConfig, with_fit_band
+from edit.geometry_edit import geometry_training
 from edit.template_scene import load_template_scene
 from edit.texture_config import TextureEditConfig, uses_part_colour
 from edit.texture_edit import write_previews
@@ -188,7 +189,7 @@ def _edit(
     t_start = time.perf_counter()
     geometry_target, texture_target, one = targets
     settings = _settings(view, targets, reference, mask, regions, gcfg, tcfg)
-    runtime = tuple(f"geometry.{k}" for k in geometry_edit.RUNTIME_KEYS)
+    runtime = tuple(f"geometry.{k}" for k in geometry_config.RUNTIME_KEYS)
     runtime += tuple(f"texture.{k}" for k in texture_config.RUNTIME_KEYS) + PATH_KEYS
     n_geometry, n_texture = gcfg.iterations, tcfg.iterations
     trainer = edit_trainer(

@@ -19,7 +19,8 @@ from edit import geometry_losses as L
 from edit.deformation import DeformationField
 from edit.edit_inputs import Target, difference_region, read_target
 from edit.editing_field import EditingField, combine, edited_query
-from edit.geometry_edit import GeometryEditConfig, run_geometry_edit
+from edit.geometry_config import GeometryEditConfig
+from edit.geometry_edit import run_geometry_edit
 from edit.scene import load_scene
 from edit.shape_prior import (
     Handles,
@@ -577,7 +578,7 @@ def test_an_identity_edit_renders_the_template_exactly_in_the_fit_band(tiny_fitt
     that moves nothing renders the template's pixels; a wider band samples other points, so
     even untouched parts of an edit would differ from the template."""
     from edit.editing_scene import deformed_template
-    from edit.geometry_edit import with_fit_band
+    from edit.geometry_config import with_fit_band
     from edit.template_scene import load_template_scene
 
     scene = load_template_scene(RunDir(tiny_fitted_run), torch.device("cpu"))

@@ -21,7 +21,7 @@ from edit.editing_field import EditingField
 from edit.editing_scene import deformed_template
 from edit.feature_field_fit import FeaturesConfig, distill_features
 from edit.feature_maps import FeatureMapRenderer
-from edit.geometry_edit import GeometryEditConfig
+from edit.geometry_config import GeometryEditConfig
 from edit.hybrid_edit import run_hybrid_edit
 from edit.scene import load_scene
 from edit.targets import recolor_region, stretch_axis, write_rgba

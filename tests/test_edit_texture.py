@@ -19,7 +19,7 @@ import sine_cli
 from edit.compositor import EPS, HEADS, TAU, Compositor, composite_hwc
 from edit.deferred import assemble, deferred_backward, direct_backward, image_tiles, ray_chunks
 from edit.editing_field import EditingField, edited_query
-from edit.geometry_edit import GeometryEditConfig
+from edit.geometry_config import GeometryEditConfig
 from edit.scene import load_scene
 from edit.targets import recolor_region, write_rgba
 from edit.texture_config import TextureEditConfig

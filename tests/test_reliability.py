@@ -19,7 +19,8 @@ import pytest
 from feature_run_helpers import TINY_FIT, TINY_GEOMETRY_EDIT
 
 import sine_cli
-from edit.geometry_edit import GeometryEditConfig, run_geometry_edit
+from edit.geometry_config import GeometryEditConfig
+from edit.geometry_edit import run_geometry_edit
 from edit.targets import write_rgba
 from recon.fit import fit_template, load_fitted
 from recon.fit_config import FitConfig
