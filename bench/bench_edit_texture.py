@@ -84,6 +84,7 @@ VARIANTS = {
     "no_fitted_transform": {"fit_transform": False, "quadratic_transform": False},
     "residual_head": {"compositor_head": "residual"},  # also no part colour, no fitted transform
     "no_mirroring": {"symmetric_auto": False, "keep_seen": False},
+    "no_keep_seen": {"keep_seen": False},
     "no_gate_vote": {"gate_vote": False},
     "no_mask_spatial": {"mask_spatial": 0.0},
 }
