@@ -420,7 +420,7 @@ def test_errors(tmp_path):
     assert not run.captures.exists()
 
 
-# ---- lenient ingestion (issue 14) ---------------------------------------------------------
+# ---- lenient ingestion --------------------------------------------------------------------
 def test_pose_files_listing_missing_images_keep_the_ones_present(tmp_path, capsys):
     cams = ring_cameras(5)
     mid = tmp_path / "mid"
