@@ -6,7 +6,7 @@ render/export/view/eval
 from __future__ import annotations
 
 from edit import (
-    demo,
+    demo_cli,
     edit_cli,
     eval_cli,
     export_cli,
@@ -28,5 +28,5 @@ MODULES = (
     export_cli,
     view_cli,
     eval_cli,
-    demo,
+    demo_cli,
 )
