@@ -17,12 +17,14 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from recon.formats import FORMAT_VERSIONS
 from recon.rundir import RunDir
-from recon.training import Trainer, discard_unstarted
+from recon.training import LoopOptions, Trainer, discard_unstarted
+from render.configs import option
 from render.errors import SineError
 from render.io import file_sha256, save_torch
 from render.locks import lock_entry
@@ -39,6 +41,19 @@ EDIT_OUTPUTS = ("edit_field.pt",)  # a finished edit whose field does not load i
 
 # the training steps of each edit phase by preset (`sine edit --preset`, unless iterations is set)
 EDIT_PRESETS = {"fast": 300, "default": 600, "quality": 1200}
+
+
+@dataclass
+class EditLoopOptions(LoopOptions):
+    """The loop settings of every edit: its length, by preset unless given."""
+
+    preset: str = option(
+        "default",
+        "time/quality trade-off: the training steps of each phase, unless iterations is set "
+        "(fast 300, default 600, quality 1200)",
+        choices=list(EDIT_PRESETS),
+    )
+    iterations: int | None = option(None, "training steps (None: the preset's)", low=1)
 
 
 def with_preset(cfg):

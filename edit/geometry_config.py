@@ -7,28 +7,20 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from edit.edit_stage import EDIT_PRESETS
+from edit.edit_stage import EditLoopOptions
 from recon.training import RUNTIME_KEYS as LOOP_RUNTIME_KEYS
-from recon.training import LoopOptions
 from render.configs import option
 
 METHODS = ("ours", "naive")
 
 
 @dataclass
-class GeometryEditConfig(LoopOptions):
+class GeometryEditConfig(EditLoopOptions):
     """Options of a geometric edit (`sine edit --mode geometry`)."""
 
     method: str = option(
         "ours", "ours (editing field + priors) or naive (fine-tune)", choices=list(METHODS)
     )
-    preset: str = option(
-        "default",
-        "time/quality trade-off: the training steps of each phase, unless iterations is set "
-        "(fast 300, default 600, quality 1200)",
-        choices=list(EDIT_PRESETS),
-    )
-    iterations: int | None = option(None, "training steps (None: the preset's)", low=1)
     batch_rays: int = option(1024, "rays of the edited view per step", low=1)
     lr_deform: float = option(2e-3, "Adam learning rate of F_dG and F'_dG", low=1e-12)
     warmup_steps: int = option(50, "steps over which F_dG's learning rate ramps up linearly", low=0)

@@ -10,9 +10,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from edit.compositor import HEADS
-from edit.edit_stage import EDIT_INPUTS, EDIT_PRESETS
+from edit.edit_stage import EDIT_INPUTS, EditLoopOptions
 from recon.training import RUNTIME_KEYS as LOOP_RUNTIME_KEYS
-from recon.training import LoopOptions
 from render.configs import option
 
 METHODS = ("ours", "naive")
@@ -24,7 +23,7 @@ GATE_RESOLUTION_AUTO = (128, 384)  # --gate-resolution 0: the pixel-matched one,
 
 
 @dataclass
-class TextureEditConfig(LoopOptions):
+class TextureEditConfig(EditLoopOptions):
     """Options of a texture edit (`sine edit --mode texture`). Options named as the geometry
     edit's share its defaults (one `sine edit` command line serves both modes)."""
 
@@ -47,13 +46,6 @@ class TextureEditConfig(LoopOptions):
         "of each pixel's colour (weighted by the gate), so a rim pixel keeps its neighbour's "
         "share (--no-part-colour: the whole pixel)",
     )
-    preset: str = option(
-        "default",
-        "time/quality trade-off: the training steps of each phase, unless iterations is set "
-        "(fast 300, default 600, quality 1200)",
-        choices=list(EDIT_PRESETS),
-    )
-    iterations: int | None = option(None, "training steps (None: the preset's)", low=1)
     template_feature: bool = option(
         True,
         "F_dT also reads the template's geometry feature at each point (as the template's own "
