@@ -149,3 +149,15 @@ def test_every_readme_command_parses_with_its_settings():
                 argv = argv[:k] + argv[k + 2 :]
         args = sine_cli.build_parser(argv).parse_args(argv)
         resolve_settings(args)  # every --set names a setting of the right type
+
+
+def test_an_edit_preset_sets_the_steps_unless_they_are_given():
+    from edit.edit_stage import with_preset
+    from edit.geometry_config import GeometryEditConfig
+    from edit.texture_config import TextureEditConfig
+
+    assert with_preset(GeometryEditConfig()).iterations == 600
+    assert with_preset(TextureEditConfig(preset="fast")).iterations == 300
+    assert with_preset(GeometryEditConfig(preset="quality", iterations=7)).iterations == 7
+    with pytest.raises(SineError, match="--preset must be one of fast, default, quality"):
+        with_preset(GeometryEditConfig(preset="slow"))
