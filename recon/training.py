@@ -198,8 +198,8 @@ def unpack_into(value: Any, packed: dict, name: str) -> None:
 
 
 def read_checkpoint_header(path: Path) -> dict | None:
-    """{"config": dict, "step": int} of a checkpoint (tensors are not read), None when the file
-    is missing or not a checkpoint of this format."""
+    """{"config": dict, "step": int, "format_version": int | None} of a checkpoint (tensors are
+    not read), None when the file is missing or not a checkpoint of this format."""
     if not path.is_file():
         return None
     try:
@@ -208,7 +208,11 @@ def read_checkpoint_header(path: Path) -> dict | None:
         return None  # corrupt, truncated, pickled objects or an older format: not usable
     if not isinstance(data, dict) or data.get("format") != _FORMAT:
         return None
-    return {"config": json.loads(data["config"]), "step": int(data["step"])}
+    return {
+        "config": json.loads(data["config"]),
+        "step": int(data["step"]),
+        "format_version": data.get("format_version"),
+    }
 
 
 _FORMAT = "sine-checkpoint-1"
@@ -285,9 +289,8 @@ class Trainer:
         # what the stage is made from (name -> file / folder): their digests are recorded with
         # the options, so a finished run whose inputs changed since is trained again
         self.inputs = {key: artefact_digest(path) for key, path in (inputs or {}).items()}
-        self.config = {**config, "inputs": self.inputs} if inputs is not None else dict(config)
+        self.config = {**config, "inputs": self.inputs} if inputs is not None else config
         self.format_version = format_version
-        self.config["format_version"] = format_version
         self.iterations, self.seed, self.log_every = iterations, seed, log_every
         self.checkpoint_every, self.checkpoint_seconds = checkpoint_every, checkpoint_seconds
         self.force, self.progress, self.manual_backward = force, progress, manual_backward
@@ -318,7 +321,7 @@ class Trainer:
                 self._say(f"{self.directory} has no readable checkpoint: training again")
             self._prepare_work_dir()
             return None
-        changes = self._changes(done["config"])
+        changes = self._changes(done)
         if not changes and done["step"] >= self.iterations:
             broken = self._unreadable_output()
             if broken is None:
@@ -349,15 +352,16 @@ class Trainer:
                 return f"{name} does not load: {torch_read_problem(exc)}"
         return None
 
-    def _changes(self, recorded: dict) -> list[str]:
-        """Why a recorded run is out of date: its format version, else the options that differ
-        from its options (see `defaults`), then the inputs that changed since it was made."""
-        recorded = dict(recorded)
-        change = version_change(recorded.pop("format_version", None), self.format_version)
+    def _changes(self, header: dict) -> list[str]:
+        """Why the run of a checkpoint `header` is out of date: its format version, else the
+        options that differ from its options (see `defaults`), then the inputs that changed
+        since it was made."""
+        change = version_change(header["format_version"], self.format_version)
         if change is not None:
             return [change]
+        recorded = dict(header["config"])
         made_from = recorded.pop("inputs", {})
-        options = {k: v for k, v in self.config.items() if k not in ("inputs", "format_version")}
+        options = {k: v for k, v in self.config.items() if k != "inputs"}
         changes = changed_options({**self.defaults, **recorded}, options, self.runtime_keys)
         changes += [
             f"{key} is not the one it was made from"
@@ -372,7 +376,7 @@ class Trainer:
         self._resumable = False
         size = f"{folder_megabytes(self.work_dir):.0f} MB"
         if header is not None:
-            changes = self._changes(header["config"])
+            changes = self._changes(header)
             if not changes:
                 self._resumable = True
                 remove_partial_writes(self.work_dir)  # a write the interruption cut short
@@ -460,6 +464,7 @@ class Trainer:
             "format": _FORMAT,
             "stage": self.name,
             "config": json.dumps(self.config, sort_keys=True),
+            "format_version": self.format_version,
             "step": self.step,
             "seconds": self.seconds,
             "log": json.dumps(self.log),
