@@ -1,11 +1,12 @@
 """`sine` subcommands of the editing side: features (DINO feature field), masks (semantic
 masks), snapshot and target (a view to edit, 2D editing targets), edit (the editing field),
 render/export/view/eval
-(outputs) and demo (built by `sine_cli`)."""
+(outputs), demo and batch (built by `sine_cli`)."""
 
 from __future__ import annotations
 
 from edit import (
+    batch_cli,
     demo_cli,
     edit_cli,
     eval_cli,
@@ -29,4 +30,5 @@ MODULES = (
     view_cli,
     eval_cli,
     demo_cli,
+    batch_cli,
 )

@@ -169,9 +169,10 @@ def _type_name(tp: Any) -> str:
     return f"{name} | None" if optional else name
 
 
-def resolve_settings(args: argparse.Namespace) -> argparse.Namespace:
-    """Fills every setting of the parsed command into `args`: defaults, then --config files,
-    then --set, then flags. Raises SineError for an unknown name or a value of the wrong type."""
+def resolve_settings(args: argparse.Namespace, base: dict | None = None) -> argparse.Namespace:
+    """Fills every setting of the parsed command into `args`: defaults, then `base` (a batch
+    file's settings), then --config files, then --set, then flags. Raises SineError for an
+    unknown name or a value of the wrong type."""
     from render.errors import SineError
 
     fields: dict[str, tuple[dataclasses.Field, Any]] = {}
@@ -181,8 +182,10 @@ def resolve_settings(args: argparse.Namespace) -> argparse.Namespace:
             if f.name not in skip:
                 fields.setdefault(f.name, (f, hints[f.name]))
     if not fields:
+        if base:
+            raise SineError(f"this command has no settings (got {', '.join(base)})")
         return args
-    given: dict[str, Any] = {}
+    given: dict[str, Any] = dict(base or {})
     for path in getattr(args, "config", None) or []:
         given.update(read_settings(path))
     for item in getattr(args, "settings", None) or []:
