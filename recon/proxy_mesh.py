@@ -190,7 +190,28 @@ def fuse_tsdf(
             coords, o3d.t.geometry.Image(o3d.core.Tensor(d)), K, ext, 1.0, depth_max, trunc_voxels
         )
     mesh = grid.extract_triangle_mesh(weight_threshold=1.0).to_legacy()
-    return mesh
+    return canonical_order(mesh)
+
+
+def canonical_order(mesh):
+    """`mesh` with its vertices sorted by position and its triangles by their vertices (each
+    rotated to start at its smallest index, so the winding is kept). The fused mesh comes out of
+    a hash map in an order that differs from run to run; in this order every later step (cleaning,
+    decimation, sampling) gives the same result from the same captures."""
+    import open3d as o3d
+
+    verts, tris = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    order = np.lexsort(verts.T[::-1])  # by x, then y, then z
+    rank = np.empty(len(order), np.int64)
+    rank[order] = np.arange(len(order))
+    tris = rank[tris]
+    start = np.argmin(tris, axis=1)[:, None]  # [T, 1]
+    tris = np.take_along_axis(tris, (start + np.arange(3)) % 3, axis=1)
+    tris = tris[np.lexsort(tris.T[::-1])]
+    out = o3d.geometry.TriangleMesh()
+    out.vertices = o3d.utility.Vector3dVector(verts[order])
+    out.triangles = o3d.utility.Vector3iVector(tris.astype(np.int32))
+    return out
 
 
 _FAR = 1e4  # depth standing for "seen empty" (np.inf) when carving: beyond every block

