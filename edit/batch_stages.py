@@ -141,7 +141,8 @@ def _execute(job, upstream: tuple[dict, ...]) -> dict:
     try:
         argv = _with_view(job, _view_index(job))
         args = parse_command(argv, job.settings)
-        key = {"argv": argv, "settings": job.settings, "inputs": [_mtime(u) for u in upstream]}
+        inputs = [_mtime(u["result"]) for u in upstream]  # a redone dependency: redo this too
+        key = {"argv": argv, "settings": job.settings, "inputs": inputs}
         record_path = job.home / "batch" / f"{job.slug}.json"
         done = (
             job.recorded
@@ -149,12 +150,12 @@ def _execute(job, upstream: tuple[dict, ...]) -> dict:
             and read_json(record_path).get("key") == key
             and Path(job.result).exists()
         )
-        before = _mtime({"result": str(job.result)})
+        before = _mtime(job.result)
         if not done:
             args.func(args)
         if job.recorded and not done:
             write_json(record_path, {"key": key})
-        skipped = done or (not job.recorded and _mtime({"result": str(job.result)}) == before)
+        skipped = done or (not job.recorded and _mtime(job.result) == before)
         status = "skipped" if skipped else "done"
         return {"status": status, "metrics": _metrics(job)}
     except SineError as exc:
@@ -209,10 +210,9 @@ def _metrics(job) -> dict:
     return {k: data[k] for k in METRICS.get(job.stage, ()) if data.get(k) is not None}
 
 
-def _mtime(record: dict) -> int:
-    """The modification time of a record's result (0 when missing): a later job's input."""
-    result = record.get("result")
-    return Path(result).stat().st_mtime_ns if result and Path(result).exists() else 0
+def _mtime(path) -> int:
+    """The modification time of a result file in ns (0 when missing)."""
+    return Path(path).stat().st_mtime_ns if Path(path).exists() else 0
 
 
 def _sees(out: Path, token: str) -> bool:

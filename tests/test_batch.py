@@ -270,3 +270,34 @@ def test_batch_on_local_ray_equals_the_cli_and_survives_a_killed_worker(tmp_path
         ray.shutdown()
     status = {j["job"]: j["status"] for j in again["jobs"]}
     assert all(s == "skipped" for j, s in status.items() if not j.startswith("broken/")), status
+
+
+class FakeRay:
+    """What `edit.batch` reads of a Ray cluster: its nodes' resources."""
+
+    def __init__(self, *nodes: dict):
+        self._nodes = [{"Alive": True, "Resources": r} for r in nodes]
+
+    def nodes(self):
+        return self._nodes
+
+
+@pytest.mark.parametrize(
+    "nodes, cpus, gpus, expected",
+    [
+        (({"CPU": 2},), 2, None, (2, 0.0)),  # no GPU anywhere: CPU tasks
+        (({"CPU": 8}, {"CPU": 16, "GPU": 2}), 4, None, (4, 1.0)),  # a GPU node: one per task
+        (({"CPU": 8, "GPU": 1},), 4, 0.5, (4, 0.5)),  # asked for half a GPU
+        (({"CPU": 2},), 4, None, "no Ray node has that many CPUs (the largest has 2)"),
+        (({"CPU": 8},), 1, 1.0, "the Ray cluster has no GPU"),
+    ],
+)
+def test_task_resources_follow_the_cluster(nodes, cpus, gpus, expected):
+    from edit.batch import BatchConfig, _resources
+
+    cfg = BatchConfig(cpus_per_task=cpus, gpus_per_task=gpus)
+    if isinstance(expected, str):
+        with pytest.raises(SineError, match=expected.replace("(", r"\(").replace(")", r"\)")):
+            _resources(FakeRay(*nodes), cfg)
+    else:
+        assert _resources(FakeRay(*nodes), cfg) == expected
