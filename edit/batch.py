@@ -76,7 +76,7 @@ def run_batch(cfg: BatchConfig) -> dict:
         "seconds": round(time.perf_counter() - t0, 1),
         "jobs": [records[job.id] for job in jobs],
     }
-    write_summary(out, summary, batch)
+    write_summary(out, summary)
     return summary
 
 

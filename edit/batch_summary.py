@@ -13,7 +13,7 @@ from render.io import write_json, write_text_atomic
 JOB_KEYS = ("object", "stage", "edit", "status", "seconds", "message", "metrics")
 
 
-def write_summary(out: Path, summary: dict, batch) -> None:
+def write_summary(out: Path, summary: dict) -> None:
     """Writes both files; `summary["jobs"]` holds the records of edit.batch_stages.run_job."""
     jobs = [{k: r.get(k) for k in JOB_KEYS} | {"job": r["job"]} for r in summary["jobs"]]
     counts = {s: sum(j["status"] == s for j in jobs) for s in ("done", "skipped", "failed")}
@@ -40,6 +40,11 @@ def _html(out: Path, summary: dict, counts: dict) -> str:
             f"<td>{html.escape(str(v))}</td>"
             for v in (r["job"], r["status"], f"{r['seconds']:.1f}", _numbers(r), r["message"])
         )
+        + (
+            f"<td><a href='{_link(out, Path(r['log']))}'>log</a></td>"
+            if r.get("log")
+            else "<td></td>"
+        )
         + "</tr>"
         for r in records
     ]
@@ -55,7 +60,7 @@ def _html(out: Path, summary: dict, counts: dict) -> str:
             "<th>template | edit | target (edited view)</th><th>numbers</th><th>outputs</th></tr>",
             *rows,
             "</table><h2>Jobs</h2><table><tr><th>job</th><th>status</th><th>seconds</th>"
-            "<th>numbers</th><th>message</th></tr>",
+            "<th>numbers</th><th>message</th><th>output</th></tr>",
             *jobs,
             "</table></body></html>\n",
         ]

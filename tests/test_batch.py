@@ -301,3 +301,40 @@ def test_task_resources_follow_the_cluster(nodes, cpus, gpus, expected):
             _resources(FakeRay(*nodes), cfg)
     else:
         assert _resources(FakeRay(*nodes), cfg) == expected
+
+
+def test_the_summary_has_a_row_per_edit_and_every_job(tmp_path):
+    from edit.batch_summary import summary_line, write_summary
+
+    def record(job, stage, status, result, edit=None, message="", metrics=None):
+        obj = job.split("/")[0]
+        return {"job": job, "object": obj, "stage": stage, "edit": edit, "status": status,
+                "seconds": 1.5, "message": message, "metrics": metrics or {},
+                "result": str(tmp_path / obj / result), "log": str(tmp_path / obj / "logs" / "x.log")}  # fmt: skip
+
+    jobs = [
+        record("a/fit", "fit", "done", "run/template/metrics.json", metrics={"heldout_psnr_object": 30.0}),
+        record("a/edit:e", "edit", "skipped", "run/edits/e/metrics.json", "e", metrics={"iterations": 300}),
+        record("a/glb:e", "mesh", "done", "e/e.glb", "e"),
+        record("b/recon", "recon", "failed", "run/recon_report.json", message="no images in b"),
+        record("b/edit:f", "edit", "failed", "run/edits/f/metrics.json", "f", "not run: b/recon failed"),
+    ]  # fmt: skip
+    summary = {"batch": "jobs.toml", "out": str(tmp_path), "seconds": 12.0, "jobs": jobs}
+    write_summary(tmp_path, summary)
+    data = json.loads((tmp_path / "batch_summary.json").read_text())
+    assert data["counts"] == {"done": 2, "skipped": 1, "failed": 2}
+    assert set(data["jobs"][0]) == {
+        "job",
+        "object",
+        "stage",
+        "edit",
+        "status",
+        "seconds",
+        "message",
+        "metrics",
+    }
+    page = (tmp_path / "batch_summary.html").read_text()
+    assert "<a href='a/e/e.glb'>e.glb</a>" in page  # the edit's outputs, relative to DIR
+    assert "failed: not run: b/recon failed" in page  # a failed edit's row says why
+    assert page.count("<tr>") == 2 + 1 + len(jobs) + 1  # header + 2 edits, header + every job
+    assert summary_line(summary).startswith("batch: 2 done, 1 skipped, 2 failed in 12 s")
