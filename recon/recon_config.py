@@ -39,6 +39,15 @@ class ReconConfig:
         "masks disagree with their visual hull)",
         choices=["auto", "keying", "saliency"],
     )
+    object_box: list[float] | None = option(
+        None,
+        "masks: X0 Y0 X1 Y1, a box around the object in view --object-view (pixels of its "
+        "original image): for an object in a room, it is segmented there and carried to every "
+        "view through the capture's cameras",
+    )
+    object_view: str = option(
+        "0", "masks: the view --object-box is drawn on: its index in the capture or its file name"
+    )
     camera_model: str = option(
         "SIMPLE_PINHOLE",
         "poses: COLMAP camera model shared by all views (with distortion the working images are undistorted)",

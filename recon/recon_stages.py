@@ -56,6 +56,10 @@ def stage_masks(pipe: Pipeline) -> dict:
         by_name = {c.name: c for c in pipe.run.load_cameras().frames}
         if not pipe.ignore_poses and all(n in by_name for n in names):
             cameras = [by_name[n] for n in names]
+    if pipe.cfg.object_box is not None:
+        from recon.object_select import select_masks
+
+        return select_masks(pipe.run, views, cameras, pipe.cfg.object_view, pipe.cfg.object_box)
     out = compute_masks(
         [pipe.run.image_path(n) for n in names],
         [pipe.run.mask_path(n) for n in names],
