@@ -9,12 +9,10 @@ from recon.rundir import RunDir
 from render.configs import add_options, from_args
 
 DESCRIPTION = """\
-Turntable-aware reconstruction as idempotent stages (ingest -> masks -> poses -> normalize ->
-depth -> proxy_mesh -> report). Finished stages are skipped; --force redoes them. Writes
-cameras.json, masks/, depth/, proxy_mesh.ply, recon_report.json and recon_contact_sheet.png into
-the run directory. Self-checks after the poses and of the proxy mesh (do the cameras explain the
-masks?) stop the run when they find it poor (--accept-poor-poses goes on); recon_report.json
-gets a verdict.
+Reconstructs a capture into a run directory in stages (ingest, masks, poses, normalize, depth,
+proxy_mesh, report); finished stages are skipped, --force redoes them. Look at
+RUN/recon_contact_sheet.png: a self-check that finds the poses poor stops the run
+(--accept-poor-poses goes on). An object in a room: --object-box around it in one view.
 """
 
 NAME = "recon"
@@ -32,10 +30,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="capture to reconstruct (omit to continue an ingested run)",
     )
     parser.add_argument("--out", type=Path, required=True, help="run directory to write")
+    add_options(parser, IngestConfig, shown=("width", "frames", "ignore_poses", "masks", "force"))
     add_options(
-        parser, IngestConfig, shown=("width", "frames", "format", "ignore_poses", "masks", "force")
+        parser,
+        ReconConfig,
+        shown=("mask_method", "depth_method", "accept_poor_poses", "object_box", "object_view"),
     )
-    add_options(parser, ReconConfig, shown=("mask_method", "depth_method", "accept_poor_poses"))
 
 
 def run(args) -> int:
