@@ -38,6 +38,7 @@ class SelectParams:
     grabcut_iterations: int = 4
     colour_ratio: float = 3.0  # log-likelihood ratio (object : background colours) of sure labels
     stop_change: float = 0.01  # stop when the region loses less than this fraction of voxels
+    work_width: int = 200  # the rounds run on images at most this wide
 
 
 def check_box(box, width: int, height: int, view: str) -> tuple[int, int, int, int]:
@@ -82,10 +83,33 @@ def select_object(
 ) -> tuple[list[np.ndarray], dict]:
     """Masks [H, W] bool of the boxed object in every view (cameras and images in the same
     order, images [H, W, 3] in [0, 1]); returns them and {"rounds", "hull_iou": per view, the
-    IoU of its mask with the visual hull of all the masks}."""
-    from tqdm import tqdm
+    IoU of its mask with the visual hull of all the masks}. The rounds run on images at most
+    `work_width` wide; the last cut is at the images' own size."""
+    from recon.selfcheck import silhouette_consistency
 
     params = params or SelectParams()
+    small = [min(1.0, params.work_width / c.width) for c in cameras]
+    cams = [
+        c.resized(round(c.width * s), round(c.height * s))
+        for c, s in zip(cameras, small, strict=True)
+    ]
+    imgs = [
+        cv2.resize(im, (c.width, c.height), interpolation=cv2.INTER_AREA)
+        for im, c in zip(images, cams, strict=True)
+    ]
+    box_small = tuple(int(round(v * small[view])) for v in box)
+    region, lo, hi, colours, rounds = _rounds(cams, imgs, view, box_small, params, progress)
+    sils = _silhouettes(cameras, region, lo, hi)  # the last cut by colour, inside the region
+    masks = [_grabcut_in(im, s, colours, params) for im, s in zip(images, sils, strict=True)]
+    ious = silhouette_consistency(cameras, masks)  # with the visual hull of these masks
+    return masks, {"rounds": rounds, "hull_iou": [float(v) for v in ious]}
+
+
+def _rounds(cameras, images, view: int, box, params: SelectParams, progress: bool):
+    """The rounds of GrabCut and carving -> (region [R, R, R] bool, lo, hi, the object's
+    colour model, rounds run)."""
+    from tqdm import tqdm
+
     mask_k = box_mask(images[view], box, params.grabcut_iterations)
     if mask_k.sum() < 16:
         raise SineError(
@@ -100,23 +124,18 @@ def select_object(
     region = cone & _ball(cone.shape, params.margin)  # the object lies in the box's cone
     if not region.any():
         raise SineError(f"the box in view {cameras[view].name} selects nothing the cameras see")
-    object_colours = colour_model(images[view], mask_k)
+    colours = colour_model(images[view], mask_k)
     masks = _silhouettes(cameras, region, lo, hi)
     masks[view] = mask_k
     tolerance = int(np.ceil(params.tolerance * len(cameras)))
     rounds = 0
     for _ in tqdm(range(params.rounds), desc="object", unit="round", disable=not progress):
         rounds += 1
-        if rounds > 1:  # view K's own cut is one view among the others from now on
-            masks = [
-                _grabcut_in(im, m, object_colours, params)
-                for im, m in zip(images, masks, strict=True)
-            ]
-        else:
-            masks = [
-                m if i == view else _grabcut_in(im, m, object_colours, params)
-                for i, (im, m) in enumerate(zip(images, masks, strict=True))
-            ]
+        keep = view if rounds == 1 else -1  # then view K's own cut is one view among the others
+        masks = [
+            m if i == keep else _grabcut_in(im, m, colours, params)
+            for i, (im, m) in enumerate(zip(images, masks, strict=True))
+        ]
         carved = _carve(cameras, masks, lo, hi, params.resolution, tolerance) & cone
         if not carved.any():
             raise SineError(
@@ -128,14 +147,7 @@ def select_object(
         masks = _silhouettes(cameras, region, lo, hi)
         if lost < params.stop_change:
             break
-    # the last cut by colour, inside the final region
-    masks = [
-        _grabcut_in(im, m, object_colours, params) for im, m in zip(images, masks, strict=True)
-    ]
-    from recon.selfcheck import silhouette_consistency
-
-    ious = silhouette_consistency(cameras, masks)  # with the visual hull of these masks
-    return masks, {"rounds": rounds, "hull_iou": [float(v) for v in ious]}
+    return region, lo, hi, colours, rounds
 
 
 # ---- the region -----------------------------------------------------------------------------
