@@ -9,7 +9,8 @@ as the box is at that depth. Then a few rounds of: in every view, GrabCut inside
 silhouette, seeded by colour (sure object where the object's colours are far likelier than the
 view's background colours outside the silhouette, sure background where far less likely, sure
 background outside); the masks carve the region again (`tolerance` of the views may disagree
-with a voxel; the box's cone bounds it always), until the region stops shrinking.
+with a voxel; the box's cone bounds it always), and the object's colours are learnt again from
+every view's cut inside the region; until the region stops shrinking.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import numpy as np
 from render.cameras import Camera
 from render.errors import SineError
 
-_MODEL_PIXELS = 4000  # pixels a colour model is fitted to (a random subset)
+_MODEL_PIXELS = 8000  # pixels a colour model is fitted to (a random subset)
 _COMPONENTS = 5  # Gaussians per colour model
 _MIN_HULL_IOU = 0.8  # a mask further from the object's visual hull than this is reported
 
@@ -144,7 +145,11 @@ def _rounds(cameras, images, view: int, box, params: SelectParams, progress: boo
             )
         lost = 1.0 - carved.sum() / max(1, region.sum())
         region = carved
-        masks = _silhouettes(cameras, region, lo, hi)
+        sils = _silhouettes(cameras, region, lo, hi)
+        # the object's colours from every view's cut inside the carved region: the sides view K
+        # does not show, and parts its own cut missed, now count
+        colours = colour_model(images, [m & s for m, s in zip(masks, sils, strict=True)])
+        masks = sils
         if lost < params.stop_change:
             break
     return region, lo, hi, colours, rounds
@@ -194,11 +199,14 @@ def _silhouettes(cameras, occ: np.ndarray, lo, hi) -> list[np.ndarray]:
     return [caster.silhouette(c) for c in cameras]
 
 
-def colour_model(image: np.ndarray, mask: np.ndarray, seed: int = 0):
-    """A Gaussian mixture of the Lab colours of the pixels of `image` [H, W, 3] under `mask`."""
+def colour_model(images, masks, seed: int = 0):
+    """A Gaussian mixture of the Lab colours of the pixels under `masks` [H, W] bool of `images`
+    [H, W, 3] (one image and mask, or lists of them)."""
     from sklearn.mixture import GaussianMixture
 
-    lab = _lab(image)[mask.ravel()]
+    if isinstance(images, np.ndarray):
+        images, masks = [images], [masks]
+    lab = np.concatenate([_lab(im)[m.ravel()] for im, m in zip(images, masks, strict=True)])
     if len(lab) > _MODEL_PIXELS:
         lab = lab[np.random.default_rng(seed).choice(len(lab), _MODEL_PIXELS, replace=False)]
     components = min(_COMPONENTS, max(1, len(lab) // 50))
