@@ -38,7 +38,12 @@ class BatchConfig:
     address: str | None = option(
         None, "Ray cluster to use ('auto': the one `ray start` joined here); none: a local Ray"
     )
-    cpus_per_task: int = option(2, "CPUs (torch threads) of each task", low=1)
+    cpus_per_task: int = option(
+        1, "CPUs (torch threads) of each task (one each: the most throughput per machine)", low=1
+    )
+    memory_per_task: float = option(
+        2.0, "memory (GB) Ray keeps for each task: no more tasks run on a node than fit", low=0.0
+    )
     gpus_per_task: float | None = option(
         None, "GPUs of each training or rendering task (none: 1 where the cluster has GPUs)"
     )
@@ -144,6 +149,12 @@ def _resources(ray, cfg: BatchConfig) -> tuple[int, float]:
             f"--cpus-per-task {cfg.cpus_per_task}: no Ray node has that many CPUs (the largest "
             f"has {most_cpus})"
         )
+    most_memory = max(r.get("memory", 0) for r in nodes) / 2**30
+    if cfg.memory_per_task > most_memory:
+        raise SineError(
+            f"--memory-per-task {cfg.memory_per_task:g}: no Ray node has that much memory for "
+            f"tasks (the largest has {most_memory:.1f} GB)"
+        )
     any_gpu = any(r.get("GPU", 0) > 0 for r in nodes)
     gpus = cfg.gpus_per_task if cfg.gpus_per_task is not None else (1.0 if any_gpu else 0.0)
     if gpus > 0 and not any_gpu:
@@ -159,6 +170,8 @@ def _run_tasks(ray, jobs, token: str, out: Path, cpus: int, gpus: float, cfg) ->
     refs: dict[str, object] = {}
     for job in jobs:
         options = {"num_cpus": cpus, "max_retries": cfg.retries, "retry_exceptions": False}
+        if cfg.memory_per_task > 0:
+            options["memory"] = int(cfg.memory_per_task * 2**30)
         if gpus and job.gpu:
             options["num_gpus"] = gpus
         deps = [refs[d] for d in job.deps]
@@ -166,7 +179,7 @@ def _run_tasks(ray, jobs, token: str, out: Path, cpus: int, gpus: float, cfg) ->
             job, token, str(out), cpus, *deps
         )
     pending = {ref: job for job, ref in zip(jobs, refs.values(), strict=True)}
-    slots = _slots(ray, cpus)
+    slots = _slots(ray, cpus, cfg.memory_per_task)
     records: dict[str, dict] = {}
     bar = tqdm(total=len(jobs), unit="task", desc="batch", disable=cfg.quiet)
     try:
@@ -189,10 +202,13 @@ def _run_tasks(ray, jobs, token: str, out: Path, cpus: int, gpus: float, cfg) ->
     return records
 
 
-def _slots(ray, cpus: int) -> int:
-    """How many tasks of `cpus` CPUs the cluster runs at once."""
+def _slots(ray, cpus: int, memory: float) -> int:
+    """How many tasks of `cpus` CPUs and `memory` GB the cluster runs at once."""
     nodes = [n.get("Resources", {}) for n in ray.nodes() if n.get("Alive")]
-    return max(1, sum(int(r.get("CPU", 0)) // cpus for r in nodes))
+    by_memory = [int(r.get("memory", 0) / 2**30 // memory) if memory > 0 else 10**6 for r in nodes]
+    return max(
+        1, sum(min(int(r.get("CPU", 0)) // cpus, m) for r, m in zip(nodes, by_memory, strict=True))
+    )
 
 
 def _record(ray, ref, job, records: dict, retries: int) -> dict:

@@ -272,6 +272,9 @@ def test_batch_on_local_ray_equals_the_cli_and_survives_a_killed_worker(tmp_path
     assert all(s == "skipped" for j, s in status.items() if not j.startswith("broken/")), status
 
 
+GB = 2**30
+
+
 class FakeRay:
     """What `edit.batch` reads of a Ray cluster: its nodes' resources."""
 
@@ -285,11 +288,22 @@ class FakeRay:
 @pytest.mark.parametrize(
     "nodes, cpus, gpus, expected",
     [
-        (({"CPU": 2},), 2, None, (2, 0.0)),  # no GPU anywhere: CPU tasks
-        (({"CPU": 8}, {"CPU": 16, "GPU": 2}), 4, None, (4, 1.0)),  # a GPU node: one per task
-        (({"CPU": 8, "GPU": 1},), 4, 0.5, (4, 0.5)),  # asked for half a GPU
-        (({"CPU": 2},), 4, None, "no Ray node has that many CPUs (the largest has 2)"),
-        (({"CPU": 8},), 1, 1.0, "the Ray cluster has no GPU"),
+        (({"CPU": 2, "memory": GB * 16},), 2, None, (2, 0.0)),  # no GPU anywhere: CPU tasks
+        (({"CPU": 8, "memory": GB}, {"CPU": 16, "GPU": 2, "memory": GB * 64}), 4, None, (4, 1.0)),
+        (({"CPU": 8, "GPU": 1, "memory": GB * 64},), 4, 0.5, (4, 0.5)),  # half a GPU each
+        (
+            ({"CPU": 2, "memory": GB * 16},),
+            4,
+            None,
+            "no Ray node has that many CPUs (the largest has 2)",
+        ),
+        (({"CPU": 8, "memory": GB * 16},), 1, 1.0, "the Ray cluster has no GPU"),
+        (
+            ({"CPU": 8, "memory": GB},),
+            1,
+            None,
+            "no Ray node has that much memory for tasks (the largest has 1.0 GB)",
+        ),
     ],
 )
 def test_task_resources_follow_the_cluster(nodes, cpus, gpus, expected):
