@@ -116,7 +116,7 @@ def run_job(job, token: str, out: str, cpus: int, *upstream: dict) -> dict:
     running.write_text(f"{os.getpid()} {record['node']}\n")
     try:
         with open(log, "a") as stream, _output_to(stream), _threads(cpus):
-            print(f"== {job.id}: sine {' '.join(job.argv)}, {time.ctime()}")
+            print(f"== {job.id}, {time.ctime()}")
             record.update(_execute(job, upstream))
     finally:
         running.unlink(missing_ok=True)
@@ -140,6 +140,7 @@ def _execute(job, upstream: tuple[dict, ...]) -> dict:
 
     try:
         argv = _with_view(job, _view_index(job))
+        print(command_line(argv, job.settings))  # the same, by hand
         args = parse_command(argv, job.settings)
         inputs = [_mtime(u["result"]) for u in upstream]  # a redone dependency: redo this too
         key = {"argv": argv, "settings": job.settings, "inputs": inputs}
@@ -171,6 +172,15 @@ def _execute(job, upstream: tuple[dict, ...]) -> dict:
         return _internal(exc)
 
 
+def command_line(argv: list[str], settings: dict) -> str:
+    """The job as one `sine` command line (its settings as --set NAME=VALUE)."""
+    import json
+    import shlex
+
+    sets = [f"{k}={json.dumps(v)}" for k, v in settings.items()]  # JSON values are TOML ones
+    return shlex.join(["sine", *argv, *(a for s in sets for a in ("--set", s))])
+
+
 def _internal(exc: Exception) -> dict:
     traceback.print_exc()
     return {"message": f"internal error {type(exc).__name__}: {exc} (traceback in the log)"}
@@ -184,12 +194,11 @@ def _view_index(job) -> int | None:
     """The edit's view as an index in the run's cameras (a file name is looked up)."""
     if job.stage != "edit":
         return None
-    from recon.rundir import RunDir
-
-    cameras = RunDir(job.home / "run").load_cameras().frames
     if isinstance(job.view, int):
         return job.view
-    names = [c.name for c in cameras]
+    from recon.rundir import RunDir
+
+    names = [c.name for c in RunDir(job.home / "run").load_cameras().frames]
     if job.view not in names:
         raise SineError(
             f"view {job.view!r} is not among the run's {len(names)} registered views "

@@ -230,7 +230,7 @@ def test_batch_on_local_ray_equals_the_cli_and_survives_a_killed_worker(tmp_path
     status = {j["job"]: j["status"] for j in summary["jobs"]}
     assert status["mug/fit"] == "done" and status["mug/glb:taller"] == "done"
     log = (out / "mug" / "logs" / "fit.log").read_text()
-    assert log.count("== mug/fit:") == 2 and "fit: resuming from step" in log  # retried
+    assert log.count("== mug/fit,") == 2 and "fit: resuming from step" in log  # retried
     assert all(s == "done" for j, s in status.items() if not j.startswith("broken/")), status
     broken = {j["job"]: j["message"] for j in summary["jobs"] if j["object"] == "broken"}
     assert "no/such/capture does not exist" in broken["broken/recon"]
@@ -352,3 +352,18 @@ def test_the_summary_has_a_row_per_edit_and_every_job(tmp_path):
     assert "failed: not run: b/recon failed" in page  # a failed edit's row says why
     assert page.count("<tr>") == 2 + 1 + len(jobs) + 1  # header + 2 edits, header + every job
     assert summary_line(summary).startswith("batch: 2 done, 1 skipped, 2 failed in 12 s")
+
+
+def test_a_jobs_command_line_means_what_the_job_does(tmp_path):
+    """The log's `sine ...` line, typed by hand, gives the job's own settings."""
+    import shlex
+
+    from edit.batch_stages import command_line, parse_command
+
+    jobs = {j.id: j for j in plan_jobs(read_batch(tiny_batch(tmp_path)), tmp_path / "out")}
+    for job in (jobs["mug/fit"], jobs["car/video:taller"]):
+        line = shlex.split(command_line(job.argv, job.settings))
+        assert line[0] == "sine"
+        by_hand, batch = parse_command(line[1:], {}), parse_command(job.argv, job.settings)
+        assert by_hand.settings and not batch.settings  # given as --set, or as the batch's
+        assert {**vars(by_hand), "settings": None} == vars(batch)
