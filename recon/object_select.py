@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from recon.masks import _disc, _grabcut, _lab, _largest_components
 from render.cameras import Camera
 from render.errors import SineError
 
@@ -66,12 +67,9 @@ def check_box(box, width: int, height: int, view: str) -> tuple[int, int, int, i
 def box_mask(image: np.ndarray, box: tuple[int, int, int, int], iterations: int = 4) -> np.ndarray:
     """GrabCut initialised by the box -> the object's mask [H, W] bool (its largest component)."""
     x0, y0, x1, y1 = box
-    gc = np.zeros(image.shape[:2], np.uint8)
-    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
-    cv2.setRNGSeed(0)
-    rect = (x0, y0, x1 - x0, y1 - y0)
-    cv2.grabCut(_bgr8(image), gc, rect, bgd, fgd, iterations, cv2.GC_INIT_WITH_RECT)
-    return _largest(np.isin(gc, (cv2.GC_FGD, cv2.GC_PR_FGD)))
+    gc = np.full(image.shape[:2], cv2.GC_BGD, np.uint8)  # what GrabCut's rectangle start sets
+    gc[y0:y1, x0:x1] = cv2.GC_PR_FGD
+    return _largest_components(_grabcut(image, gc, iterations), 1.0)
 
 
 def select_object(
@@ -206,7 +204,7 @@ def colour_model(images, masks, seed: int = 0):
 
     if isinstance(images, np.ndarray):
         images, masks = [images], [masks]
-    lab = np.concatenate([_lab(im)[m.ravel()] for im, m in zip(images, masks, strict=True)])
+    lab = np.concatenate([_lab(im)[m] for im, m in zip(images, masks, strict=True)])
     if len(lab) > _MODEL_PIXELS:
         lab = lab[np.random.default_rng(seed).choice(len(lab), _MODEL_PIXELS, replace=False)]
     components = min(_COMPONENTS, max(1, len(lab) // 50))
@@ -221,11 +219,10 @@ def _grabcut_in(image: np.ndarray, region: np.ndarray, object_colours, params) -
     under this view's background (outside the region) are sure foreground, far less likely sure
     background, the rest of the region probable foreground."""
     r = max(1, int(round(0.012 * min(region.shape))))
-    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    outside = cv2.dilate(region.astype(np.uint8), disc) == 0
+    outside = cv2.dilate(region.astype(np.uint8), _disc(r)) == 0
     if not region.any() or outside.sum() < 50:
         return region
-    lab = _lab(image)
+    lab = _lab(image).reshape(-1, 3)
     background = colour_model(image, outside)
     ratio = object_colours.score_samples(lab) - background.score_samples(lab)
     ratio = ratio.reshape(region.shape)
@@ -234,28 +231,7 @@ def _grabcut_in(image: np.ndarray, region: np.ndarray, object_colours, params) -
     gc[region & (ratio > params.colour_ratio)] = cv2.GC_FGD
     gc[region & (ratio < -params.colour_ratio)] = cv2.GC_BGD
     gc[outside] = cv2.GC_BGD
-    if not (gc == cv2.GC_FGD).any() and not (gc == cv2.GC_PR_FGD).any():
-        return np.zeros_like(region)
-    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
-    cv2.setRNGSeed(0)
-    cv2.grabCut(_bgr8(image), gc, None, bgd, fgd, params.grabcut_iterations, cv2.GC_INIT_WITH_MASK)
-    return _largest(np.isin(gc, (cv2.GC_FGD, cv2.GC_PR_FGD)))
-
-
-def _lab(image: np.ndarray) -> np.ndarray:
-    """[H*W, 3] Lab colours of an RGB image in [0, 1]."""
-    return cv2.cvtColor(image.astype(np.float32), cv2.COLOR_RGB2Lab).reshape(-1, 3)
-
-
-def _bgr8(image: np.ndarray) -> np.ndarray:
-    return np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)[:, :, ::-1].copy()
-
-
-def _largest(mask: np.ndarray) -> np.ndarray:
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    if n <= 1:
-        return mask.astype(bool)
-    return labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    return _largest_components(_grabcut(image, gc, params.grabcut_iterations), 1.0)
 
 
 # ---- the masks stage of a capture with a selection -----------------------------------------
