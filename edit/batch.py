@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from edit.batch_file import plan_jobs, read_batch
-from edit.batch_stages import HEADLINE, TOKEN, check_job, probe, run_job
+from edit.batch_stages import HEADLINE, TOKEN, check_job, failed_record, probe, run_job
 from render.configs import option, validate
 from render.errors import SineError
 from render.io import require_directory, write_text_atomic
@@ -222,17 +222,7 @@ def _record(ray, ref, job, records: dict, retries: int) -> dict:
             if failed
             else f"its worker died {retries + 1} times ({type(exc).__name__}); see the Ray logs"
         )
-        return {
-            "job": job.id,
-            "object": job.object,
-            "stage": job.stage,
-            "edit": job.edit,
-            "status": "failed",
-            "seconds": 0.0,
-            "message": message,
-            "metrics": {},
-            "result": str(job.result),
-        }
+        return failed_record(job, message)
 
 
 def finished_line(record: dict) -> str:

@@ -86,28 +86,18 @@ def run_job(job, token: str, out: str, cpus: int, *upstream: dict) -> dict:
     record {"job", "object", "stage", "edit", "status", "seconds", "message", "metrics",
     "result", "log"}. Never raises for the job's own errors: they become its record."""
     t0 = time.perf_counter()
-    record = {
-        "job": job.id,
-        "object": job.object,
-        "stage": job.stage,
-        "edit": job.edit,
-        "status": "failed",
-        "message": "",
-        "metrics": {},
-        "result": str(job.result),
-        "node": socket.gethostname(),
-    }
+    record = failed_record(job, "")
+    record["node"] = socket.gethostname()
     failed = [u["job"] for u in upstream if u["status"] == "failed"]
     if failed:
-        record["message"] = f"not run: {failed[0]} failed"
-        return {**record, "seconds": 0.0}
+        return {**record, "message": f"not run: {failed[0]} failed"}
     out = Path(out)
     if not _sees(out, token):
-        record["message"] = (
+        message = (
             f"the worker on {record['node']} does not see {out} (the batch's --out must be a "
             "folder every node mounts)"
         )
-        return {**record, "seconds": 0.0, "storage": False}
+        return {**record, "message": message, "storage": False}
     log = job.home / "logs" / f"{job.slug}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
     record["log"] = str(log)
@@ -122,6 +112,21 @@ def run_job(job, token: str, out: str, cpus: int, *upstream: dict) -> dict:
         running.unlink(missing_ok=True)
     record["seconds"] = round(time.perf_counter() - t0, 1)
     return record
+
+
+def failed_record(job, message: str) -> dict:
+    """The record of a job that did not finish (the batch's schema, see `run_job`)."""
+    return {
+        "job": job.id,
+        "object": job.object,
+        "stage": job.stage,
+        "edit": job.edit,
+        "status": "failed",
+        "seconds": 0.0,
+        "message": message,
+        "metrics": {},
+        "result": str(job.result),
+    }
 
 
 def marker(job) -> Path:
