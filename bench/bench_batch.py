@@ -55,10 +55,6 @@ def batch_file(objects: list[str], quick: bool) -> str:
     return tomli_w.dumps(data)
 
 
-def toml_value(value) -> str:
-    return tomli_w.dumps({"v": value}).split("=", 1)[1].strip()
-
-
 def sequential(jobs_path: Path, out: Path) -> tuple[float, list[str]]:
     """Every job of the batch as its own `sine` command, one after another (a job whose
     dependency failed is left out, as the batch leaves it out); returns the failed jobs too."""
@@ -72,7 +68,7 @@ def sequential(jobs_path: Path, out: Path) -> tuple[float, list[str]]:
             frames = json.loads((job.home / "run" / "cameras.json").read_text())["frames"]
             argv += ["--view", str([f["name"] for f in frames].index(job.view))]
         for key, value in job.settings.items():
-            argv += ["--set", f"{key}={toml_value(value)}"]
+            argv += ["--set", f"{key}={json.dumps(value)}"]  # JSON values are TOML ones
         done = subprocess.run([sys.executable, "-m", "sine_cli", *argv], capture_output=True)
         if done.returncode:
             failed.append(job.id)
